@@ -1,0 +1,146 @@
+"""Side-by-side timing and peak-memory measurement shared by the benchmarks.
+
+Each benchmark runs ours and the reference on the same inputs in one process and
+reports ratios. Peak memory is measured per call: on CUDA with the caching
+allocator's counters, on Linux CPUs from the process high-water mark (VmHWM),
+which is reset before each measured call through ``/proc/self/clear_refs`` after
+glibc has returned its cached free pages to the OS.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import gc
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+_STATUS = Path("/proc/self/status")
+_CLEAR_REFS = Path("/proc/self/clear_refs")
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Median wall time (seconds) over repeats and peak extra memory (MiB) of one call."""
+
+    seconds: float
+    peak_mib: float
+
+
+def _release_free_heap_pages() -> None:
+    """Return glibc's cached free pages to the OS so the next call's peak shows in RSS.
+
+    glibc keeps freed tensors' pages resident for reuse; ``malloc_trim(0)`` unmaps
+    them, so pages the measured call touches are counted again.
+    """
+    libc_name = ctypes.util.find_library("c")
+    if libc_name is not None:
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(libc_name).malloc_trim(0)
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _rss_kib(field: str) -> int | None:
+    try:
+        for line in _STATUS.read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def peak_memory_mib(fn: Callable[[], Any], device: torch.device) -> float:
+    """Extra memory at the peak of one call of ``fn``, in MiB (NaN where unmeasurable)."""
+    gc.collect()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        base = torch.cuda.memory_allocated(device)
+        fn()
+        torch.cuda.synchronize(device)
+        return (torch.cuda.max_memory_allocated(device) - base) / 2**20
+    _release_free_heap_pages()
+    try:
+        _CLEAR_REFS.write_text("5")  # resets VmHWM to the current RSS
+    except OSError:
+        return float("nan")
+    base = _rss_kib("VmRSS")
+    fn()
+    peak = _rss_kib("VmHWM")
+    if base is None or peak is None:
+        return float("nan")
+    return max(peak - base, 0) / 1024
+
+
+def median_seconds(
+    fn: Callable[[], Any], device: torch.device, *, repeats: int = 20, warmup: int = 3
+) -> float:
+    """Median wall time of ``repeats`` calls of ``fn`` after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    _synchronize(device)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        _synchronize(device)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+Case = tuple[Callable[[], Any], Callable[[], Any]]
+"""``(ours, reference)``: two zero-argument callables over the same inputs."""
+
+
+def compare(
+    cases: dict[str, Case], device: torch.device, *, repeats: int = 20
+) -> dict[str, tuple[Measurement, Measurement]]:
+    """Time every case (ours, then the reference, on the same inputs) and measure peak memory."""
+    seconds = {
+        name: (
+            median_seconds(ours, device, repeats=repeats),
+            median_seconds(ref, device, repeats=repeats),
+        )
+        for name, (ours, ref) in cases.items()
+    }
+    return {
+        name: (
+            Measurement(seconds[name][0], peak_memory_mib(ours, device)),
+            Measurement(seconds[name][1], peak_memory_mib(ref, device)),
+        )
+        for name, (ours, ref) in cases.items()
+    }
+
+
+def print_comparison(
+    title: str,
+    results: dict[str, tuple[Measurement, Measurement]],
+    notes: dict[str, str] | None = None,
+) -> None:
+    """Print one row per case with the reference/ours time ratio ("speed-up")."""
+    notes = notes or {}
+    print(title)
+    header = (
+        f"{'case':<34}{'ours ms':>10}{'ref ms':>10}{'speed-up':>10}"
+        f"{'ours MiB':>10}{'ref MiB':>10}  note"
+    )
+    print(header)
+    print("-" * len(header))
+    for case, (ours, ref) in results.items():
+        print(
+            f"{case:<34}{ours.seconds * 1e3:>10.3f}{ref.seconds * 1e3:>10.3f}"
+            f"{ref.seconds / ours.seconds:>9.2f}x{ours.peak_mib:>10.1f}{ref.peak_mib:>10.1f}"
+            f"  {notes.get(case, '')}"
+        )

@@ -1,0 +1,52 @@
+"""dego: composable, typed PyTorch modules for Gaussian-based 3D semantic occupancy.
+
+Implements the building blocks of "Deformable Gaussian Occupancy" (DeGO, CVPR 2026)
+so that they run on CPU and GPU, in float32 and float64, with checked shapes.
+"""
+
+from dego._version import __version__
+from dego.classes import (
+    CLASS_GROUPS,
+    CLASS_NAMES,
+    FREE_LABEL,
+    HUMAN_CENTRIC_CLASSES,
+    INSTANCE_CLASSES,
+    NUM_CLASSES,
+    PALETTE,
+    PROTOCOL_CLASSES,
+    SCENE_CLASSES,
+    Occ3DLabel,
+    protocol_classes,
+)
+from dego.encoding import PositionalEncoding, positional_encoding
+from dego.gaussians import (
+    GaussianSet,
+    build_covariances,
+    build_precisions,
+    normalize_quaternions,
+    quaternions_to_rotation_matrices,
+)
+from dego.grid import VoxelGrid
+
+__all__ = [
+    "CLASS_GROUPS",
+    "CLASS_NAMES",
+    "FREE_LABEL",
+    "HUMAN_CENTRIC_CLASSES",
+    "INSTANCE_CLASSES",
+    "NUM_CLASSES",
+    "PALETTE",
+    "PROTOCOL_CLASSES",
+    "SCENE_CLASSES",
+    "GaussianSet",
+    "Occ3DLabel",
+    "PositionalEncoding",
+    "VoxelGrid",
+    "__version__",
+    "build_covariances",
+    "build_precisions",
+    "normalize_quaternions",
+    "positional_encoding",
+    "protocol_classes",
+    "quaternions_to_rotation_matrices",
+]

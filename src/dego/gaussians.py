@@ -1,0 +1,437 @@
+"""3D Gaussians: the :class:`GaussianSet` container and quaternion/covariance helpers.
+
+Conventions (see ``docs/conventions.md``): quaternions are ``(w, x, y, z)``, need not
+be unit (they are normalised inside, ``q`` and ``-q`` are the same rotation), scales
+are per-axis standard deviations in metres, and the covariance is
+``Sigma = R diag(s^2) R^T``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar
+
+import torch
+import torch.utils._pytree as pytree
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+
+from dego._typing import typechecked
+
+QUATERNION_EPS = 1e-12
+"""Norms below this are treated as zero when normalising quaternions."""
+
+
+@typechecked
+def normalize_quaternions(
+    quats: Float[Tensor, "*batch 4"], eps: float = QUATERNION_EPS
+) -> Float[Tensor, "*batch 4"]:
+    """Scale quaternions ``(*, 4)`` (wxyz) to unit norm; norms below ``eps`` are clamped."""
+    return quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(eps)
+
+
+@typechecked
+def quaternions_to_rotation_matrices(
+    quats: Float[Tensor, "*batch 4"],
+) -> Float[Tensor, "*batch 3 3"]:
+    """Rotation matrices ``(*, 3, 3)`` from (possibly unnormalised) wxyz quaternions ``(*, 4)``.
+
+    The result is quadratic in the unit quaternion, so ``q``, ``-q`` and ``lambda * q``
+    (``lambda != 0``) give the same matrix.
+    """
+    w, x, y, z = normalize_quaternions(quats).unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = (
+        1 - 2 * (yy + zz),
+        2 * (xy - wz),
+        2 * (xz + wy),
+        2 * (xy + wz),
+        1 - 2 * (xx + zz),
+        2 * (yz - wx),
+        2 * (xz - wy),
+        2 * (yz + wx),
+        1 - 2 * (xx + yy),
+    )
+    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
+
+
+def _gram_of_scaled_rotation(
+    quats: Tensor, column_scales: Tensor
+) -> Tensor:  # (R diag(c)) (R diag(c))^T = R diag(c^2) R^T, symmetric by construction
+    scaled = quaternions_to_rotation_matrices(quats) * column_scales.unsqueeze(-2)
+    return scaled @ scaled.transpose(-1, -2)
+
+
+@typechecked
+def build_covariances(
+    quats: Float[Tensor, "*batch 4"], scales: Float[Tensor, "*batch 3"]
+) -> Float[Tensor, "*batch 3 3"]:
+    """Covariances ``R diag(s^2) R^T`` ``(*, 3, 3)`` from quats ``(*, 4)``, scales ``(*, 3)``."""
+    return _gram_of_scaled_rotation(quats, scales)
+
+
+@typechecked
+def build_precisions(
+    quats: Float[Tensor, "*batch 4"], scales: Float[Tensor, "*batch 3"]
+) -> Float[Tensor, "*batch 3 3"]:
+    """Inverse covariances ``R diag(1/s^2) R^T`` ``(*, 3, 3)``, computed in closed form.
+
+    No matrix inversion: accurate and cheap even for very anisotropic Gaussians.
+    Scales must be positive.
+    """
+    return _gram_of_scaled_rotation(quats, scales.reciprocal())
+
+
+# ----------------------------------------------------------------------------------------
+# GaussianSet
+# ----------------------------------------------------------------------------------------
+
+_TRAILING_DIMS: dict[str, int | None] = {
+    "means": 3,
+    "quats": 4,
+    "scales": 3,
+    "opacities": None,  # no trailing channel axis: (*batch, N)
+    "features": -1,  # any channel count C
+}
+
+
+def _describe_expected(name: str, batch: tuple[int, ...], n: int, channels: int | None) -> str:
+    dims = [*map(str, batch), str(n)]
+    symbolic = "(*batch, N" + {None: ")", -1: ", C)"}.get(channels, f", {channels})")
+    if channels is not None:
+        dims.append("C" if channels == -1 else str(channels))
+    return f"{name}: expected shape {symbolic} = ({', '.join(dims)})"
+
+
+@dataclasses.dataclass(frozen=True, eq=False, repr=False)
+class GaussianSet:
+    """A (batched) set of N 3D Gaussians; all tensors share batch shape, N, dtype and device.
+
+    Fields:
+        means: ``(*batch, N, 3)`` centres in metres.
+        quats: ``(*batch, N, 4)`` rotations as wxyz quaternions (any non-zero norm).
+        scales: ``(*batch, N, 3)`` per-axis standard deviations in metres (> 0).
+        opacities: ``(*batch, N)`` opacities in [0, 1].
+        features: optional ``(*batch, N, C)`` per-Gaussian features (semantics, latents).
+
+    Construction validates shapes, dtypes (floating point, identical) and devices and
+    raises ``ValueError``/``TypeError`` naming the field. Values are checked on demand
+    by :meth:`check_values`. The class is a registered torch pytree, so
+    ``torch.utils._pytree.tree_map`` and ``torch.compile`` see its tensors as leaves.
+    """
+
+    means: Float[Tensor, "*batch N 3"]
+    quats: Float[Tensor, "*batch N 4"]
+    scales: Float[Tensor, "*batch N 3"]
+    opacities: Float[Tensor, "*batch N"]
+    features: Float[Tensor, "*batch N C"] | None = None
+
+    FIELDS: ClassVar[tuple[str, ...]] = tuple(_TRAILING_DIMS)
+
+    def __post_init__(self) -> None:
+        for name in self.FIELDS[:4]:
+            if getattr(self, name) is None:
+                raise TypeError(f"{name}: is required (only features may be None)")
+        for name, value in self._items():
+            if not isinstance(value, Tensor):
+                raise TypeError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+            if not value.is_floating_point():
+                raise TypeError(f"{name}: expected a floating-point tensor, got {value.dtype}")
+        means = self.means
+        if means.ndim < 2 or means.shape[-1] != 3:
+            raise ValueError(f"means: expected shape (*batch, N, 3), got {tuple(means.shape)}")
+        batch, n = tuple(means.shape[:-2]), means.shape[-2]
+        for name, value in self._items():
+            channels = _TRAILING_DIMS[name]
+            expected_ndim = len(batch) + (1 if channels is None else 2)
+            leading = tuple(value.shape[: len(batch) + 1])
+            ok = value.ndim == expected_ndim and leading == (*batch, n)
+            if ok and channels not in (None, -1):
+                ok = value.shape[-1] == channels
+            if not ok:
+                raise ValueError(
+                    f"{_describe_expected(name, batch, n, channels)}, got {tuple(value.shape)}"
+                )
+            if value.dtype != means.dtype:
+                raise TypeError(
+                    f"{name}: dtype {value.dtype} differs from means' dtype {means.dtype}; "
+                    "all fields must share one floating dtype"
+                )
+            if value.device != means.device:
+                raise ValueError(
+                    f"{name}: on device {value.device} but means is on {means.device}; "
+                    "all fields must be on one device"
+                )
+
+    # -- construction helpers --------------------------------------------------------
+    @classmethod
+    def _unchecked(cls, **fields: Any) -> GaussianSet:
+        """Build without validation (pytree unflatten may carry non-tensor leaves)."""
+        obj = object.__new__(cls)
+        for name in cls.FIELDS:
+            object.__setattr__(obj, name, fields.get(name))
+        return obj
+
+    def _items(self) -> list[tuple[str, Tensor]]:
+        """``(name, tensor)`` for every present field, in declaration order."""
+        return [(n, getattr(self, n)) for n in self.FIELDS if getattr(self, n) is not None]
+
+    def _map(self, fn: Callable[[str, Tensor], Tensor]) -> GaussianSet:
+        return GaussianSet(**{name: fn(name, value) for name, value in self._items()})
+
+    # -- basic properties -------------------------------------------------------------
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Leading batch shape ``*batch`` (empty for a single set)."""
+        return self.means.shape[:-2]
+
+    @property
+    def num_gaussians(self) -> int:
+        """Number N of Gaussians per batch element."""
+        return self.means.shape[-2]
+
+    @property
+    def feature_dim(self) -> int | None:
+        """Channel count C of ``features``, or ``None`` when there are no features."""
+        return None if self.features is None else self.features.shape[-1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.means.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    def __repr__(self) -> str:
+        return (
+            f"GaussianSet(batch_shape={tuple(self.batch_shape)}, "
+            f"num_gaussians={self.num_gaussians}, feature_dim={self.feature_dim}, "
+            f"dtype={self.dtype}, device={self.device})"
+        )
+
+    # -- geometry ---------------------------------------------------------------------
+    def rotation_matrices(self) -> Float[Tensor, "*batch N 3 3"]:
+        """Rotation matrices ``(*batch, N, 3, 3)`` of the (normalised) quaternions."""
+        return quaternions_to_rotation_matrices(self.quats)
+
+    def covariances(self) -> Float[Tensor, "*batch N 3 3"]:
+        """Covariances ``R diag(s^2) R^T``, ``(*batch, N, 3, 3)``."""
+        return build_covariances(self.quats, self.scales)
+
+    def precisions(self) -> Float[Tensor, "*batch N 3 3"]:
+        """Inverse covariances ``R diag(1/s^2) R^T``, ``(*batch, N, 3, 3)`` (no inversion)."""
+        return build_precisions(self.quats, self.scales)
+
+    # -- tensor plumbing --------------------------------------------------------------
+    def to(self, *args: Any, **kwargs: Any) -> GaussianSet:
+        """Apply ``Tensor.to(*args, **kwargs)`` to every field (device and/or float dtype)."""
+        return self._map(lambda _, t: t.to(*args, **kwargs))
+
+    def detach(self) -> GaussianSet:
+        """A copy whose tensors are detached from the autograd graph."""
+        return self._map(lambda _, t: t.detach())
+
+    def replace(self, **fields: Tensor | None) -> GaussianSet:
+        """A new set with some fields replaced (re-validated); ``features=None`` drops features."""
+        unknown = sorted(set(fields) - set(self.FIELDS))
+        if unknown:
+            raise TypeError(f"replace: unknown field(s) {unknown}; valid fields are {self.FIELDS}")
+        return dataclasses.replace(self, **fields)
+
+    @typechecked
+    def select(
+        self, index: slice | Sequence[int] | Int[Tensor, "*index_shape"] | Bool[Tensor, " N"]
+    ) -> GaussianSet:
+        """Gaussians picked along N.
+
+        ``index`` may be a slice, a sequence of ints, a 1-D integer tensor (shared by the
+        whole batch; negative values count from the end), a 1-D bool mask of length N,
+        or an integer tensor of shape ``(*batch, K)`` picking K Gaussians per batch item.
+        """
+        n = self.num_gaussians
+        if isinstance(index, slice):
+            index = torch.arange(n, device=self.device)[index]
+        elif not isinstance(index, Tensor):
+            if isinstance(index, str | bytes) or not all(
+                isinstance(i, int) and not isinstance(i, bool) for i in index
+            ):
+                raise TypeError("index: a sequence index must hold ints only")
+            index = torch.tensor(list(index), dtype=torch.long)
+        index = index.to(self.device)
+        if index.dtype == torch.bool:
+            if index.shape[0] != n:
+                raise ValueError(f"index: bool mask has length {index.shape[0]}, expected N={n}")
+            index = index.nonzero().squeeze(-1)
+        out_of_range = (index < -n) | (index >= n)
+        if index.numel() and bool(out_of_range.any()):
+            bad = index[out_of_range][0].item()
+            raise IndexError(f"index: value {bad} is out of range for N={n}")
+        index = index.long().remainder(n) if n else index.long()
+        if index.ndim == 1:
+            return self._map(lambda name, t: t.index_select(_gaussian_axis(name, t), index))
+        if tuple(index.shape[:-1]) != tuple(self.batch_shape):
+            raise ValueError(
+                f"index: a batched index must have shape (*batch, K) with batch "
+                f"{tuple(self.batch_shape)}, got {tuple(index.shape)}"
+            )
+
+        def gather(name: str, t: Tensor) -> Tensor:
+            along = index if name == "opacities" else index.unsqueeze(-1)
+            return torch.take_along_dim(t, along, dim=_gaussian_axis(name, t))
+
+        return self._map(gather)
+
+    @staticmethod
+    def cat(sets: Sequence[GaussianSet]) -> GaussianSet:
+        """Concatenate sets along N; they must share batch shape, dtype, device and features."""
+        if len(sets) == 0:
+            raise ValueError("sets: need at least one GaussianSet to concatenate")
+        first = sets[0]
+        for i, s in enumerate(sets):
+            if not isinstance(s, GaussianSet):
+                raise TypeError(f"sets[{i}]: expected a GaussianSet, got {type(s).__name__}")
+            if s.batch_shape != first.batch_shape:
+                raise ValueError(
+                    f"sets[{i}]: batch shape {tuple(s.batch_shape)} differs from sets[0]'s "
+                    f"{tuple(first.batch_shape)}"
+                )
+            if s.feature_dim != first.feature_dim:
+                raise ValueError(
+                    f"sets[{i}]: feature_dim {s.feature_dim} differs from sets[0]'s "
+                    f"{first.feature_dim} (all sets need features of one size, or none)"
+                )
+            if s.dtype != first.dtype or s.device != first.device:
+                raise ValueError(
+                    f"sets[{i}]: {s.dtype} on {s.device} differs from sets[0]'s "
+                    f"{first.dtype} on {first.device}"
+                )
+        return first._map(
+            lambda name, t: torch.cat([getattr(s, name) for s in sets], _gaussian_axis(name, t))
+        )
+
+    @staticmethod
+    def stack(sets: Sequence[GaussianSet]) -> GaussianSet:
+        """Stack unbatched sets of possibly different N into one ``(len(sets), N_max)`` batch.
+
+        Shorter sets are padded with zero-opacity Gaussians (mean 0, identity rotation,
+        unit scale, zero features), which by the library's contract contribute nothing.
+        """
+        if len(sets) == 0:
+            raise ValueError("sets: need at least one GaussianSet to stack")
+        for i, s in enumerate(sets):
+            if not isinstance(s, GaussianSet) or s.batch_shape != ():
+                raise ValueError(f"sets[{i}]: expected an unbatched GaussianSet (batch_shape ())")
+        GaussianSet.cat(sets)  # validates feature_dim / dtype / device agreement
+        n_max = max(s.num_gaussians for s in sets)
+        padded = [GaussianSet.cat([s, _padding_like(s, n_max - s.num_gaussians)]) for s in sets]
+        return padded[0]._map(lambda name, _: torch.stack([getattr(s, name) for s in padded]))
+
+    def reshape_batch(self, *shape: int) -> GaussianSet:
+        """Reshape the batch axes to ``shape`` (``-1`` allowed); N and channels are kept."""
+
+        def reshape(name: str, t: Tensor) -> Tensor:
+            tail = t.shape[len(self.batch_shape) :]
+            return t.reshape(*shape, *tail)
+
+        try:
+            return self._map(reshape)
+        except RuntimeError as err:
+            raise ValueError(
+                f"shape: cannot reshape batch {tuple(self.batch_shape)} to {shape}"
+            ) from err
+
+    def flatten_batch(self) -> GaussianSet:
+        """Merge all batch axes into one: ``(*batch, N, k) -> (prod(batch), N, k)``.
+
+        An unbatched set becomes a batch of one.
+        """
+        return self.reshape_batch(math.prod(self.batch_shape))
+
+    # -- value checks -----------------------------------------------------------------
+    def check_values(self) -> GaussianSet:
+        """Raise ``ValueError`` on non-finite values, scales <= 0, opacities outside [0, 1]
+        or zero-norm quaternions; returns ``self`` so it can be chained."""
+        for name, value in self._items():
+            bad = ~torch.isfinite(value)
+            if bool(bad.any()):
+                raise ValueError(
+                    f"{name}: {int(bad.sum())} of {value.numel()} values are not finite"
+                )
+        rules = (
+            ("scales", self.scales <= 0, "must be positive standard deviations"),
+            ("opacities", (self.opacities < 0) | (self.opacities > 1), "must lie in [0, 1]"),
+        )
+        for name, bad, what in rules:
+            if bool(bad.any()):
+                offending = getattr(self, name)[bad]
+                raise ValueError(
+                    f"{name} {what}; {offending.numel()} values violate this "
+                    f"(e.g. {offending[0].item():.6g})"
+                )
+        zero = torch.linalg.vector_norm(self.quats, dim=-1) <= QUATERNION_EPS
+        if bool(zero.any()):
+            raise ValueError(
+                f"quats: {int(zero.sum())} quaternions have zero norm and encode no rotation"
+            )
+        return self
+
+
+def _gaussian_axis(name: str, t: Tensor) -> int:
+    """Index of the N axis of field ``name`` (opacities have no trailing channel axis)."""
+    return t.ndim - 1 if name == "opacities" else t.ndim - 2
+
+
+def _padding_like(s: GaussianSet, count: int) -> GaussianSet:
+    kw = {"dtype": s.dtype, "device": s.device}
+    quats = torch.zeros(count, 4, **kw)
+    quats[:, 0] = 1
+    features = None if s.features is None else torch.zeros(count, s.features.shape[-1], **kw)
+    return GaussianSet(
+        means=torch.zeros(count, 3, **kw),
+        quats=quats,
+        scales=torch.ones(count, 3, **kw),
+        opacities=torch.zeros(count, **kw),
+        features=features,
+    )
+
+
+# -- torch pytree registration ---------------------------------------------------------
+
+
+def _flatten(gs: GaussianSet) -> tuple[list[Any], tuple[str, ...]]:
+    names = tuple(n for n in GaussianSet.FIELDS if getattr(gs, n) is not None)
+    return [getattr(gs, n) for n in names], names
+
+
+def _flatten_with_keys(gs: GaussianSet) -> tuple[list[tuple[Any, Any]], tuple[str, ...]]:
+    leaves, names = _flatten(gs)
+    return [(pytree.GetAttrKey(n), leaf) for n, leaf in zip(names, leaves, strict=True)], names
+
+
+def _unflatten(leaves: Any, names: tuple[str, ...]) -> GaussianSet:
+    return GaussianSet._unchecked(**dict(zip(names, leaves, strict=True)))
+
+
+pytree.register_pytree_node(
+    GaussianSet,
+    _flatten,
+    _unflatten,
+    serialized_type_name="dego.GaussianSet",
+    to_dumpable_context=list,
+    from_dumpable_context=tuple,
+    flatten_with_keys_fn=_flatten_with_keys,
+)
+
+__all__ = [
+    "QUATERNION_EPS",
+    "GaussianSet",
+    "build_covariances",
+    "build_precisions",
+    "normalize_quaternions",
+    "quaternions_to_rotation_matrices",
+]

@@ -1,0 +1,48 @@
+"""The README's and the docs' Python examples run as written; the quick-start example runs."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def python_blocks(path: Path) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", path.read_text(), flags=re.DOTALL)
+
+
+@pytest.mark.parametrize("path", DOCUMENTS, ids=lambda p: p.name)
+def test_python_examples_run(path: Path) -> None:
+    namespace: dict[str, object] = {}
+    for block in python_blocks(path):  # blocks of one page share a namespace, as in a session
+        exec(compile(block, str(path), "exec"), namespace)
+
+
+def test_readme_has_exactly_two_setup_commands() -> None:
+    bash_blocks = re.findall(
+        r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.DOTALL
+    )
+    commands = [
+        line
+        for block in bash_blocks
+        for line in block.splitlines()
+        if line and not line.startswith("#")
+    ]
+    assert len(commands) == 2
+    assert commands[0].endswith("python examples/quickstart.py")
+    assert commands[1].endswith("python -m pytest -q")
+
+
+@pytest.mark.parametrize("script", sorted((ROOT / "examples").glob("*.py")), ids=lambda p: p.name)
+def test_examples_run(script: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip()

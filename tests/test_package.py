@@ -1,0 +1,41 @@
+"""Package surface: version, public names, typing marker, bench script."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from importlib import resources
+from pathlib import Path
+
+import dego
+
+
+def test_version_and_public_names() -> None:
+    assert isinstance(dego.__version__, str) and dego.__version__
+    for name in dego.__all__:
+        assert hasattr(dego, name), name
+    dego.VoxelGrid.occ3d()
+    dego.PositionalEncoding(6)
+
+
+def test_typed_marker_is_shipped() -> None:
+    assert resources.files("dego").joinpath("py.typed").is_file()
+
+
+def test_benchmark_script_runs_on_a_small_case() -> None:
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run(
+        [
+            sys.executable,
+            str(root / "benchmarks" / "bench_gaussians.py"),
+            "--n",
+            "500",
+            "--repeats",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "speed-up" in result.stdout
