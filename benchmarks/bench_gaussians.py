@@ -14,9 +14,10 @@ import argparse
 import math
 
 import torch
-from harness import compare, print_comparison
 
 from dego import GaussianSet
+
+from harness import compare, print_comparison
 
 
 def random_set(n: int, scale_range: tuple[float, float], device: torch.device) -> GaussianSet:

@@ -27,6 +27,7 @@ from dego.gaussians import (
     quaternions_to_rotation_matrices,
 )
 from dego.grid import VoxelGrid
+from dego.metrics import OccupancyMetrics, OccupancyReport, confusion_matrix, per_class_iou
 
 __all__ = [
     "CLASS_GROUPS",
@@ -40,12 +41,16 @@ __all__ = [
     "SCENE_CLASSES",
     "GaussianSet",
     "Occ3DLabel",
+    "OccupancyMetrics",
+    "OccupancyReport",
     "PositionalEncoding",
     "VoxelGrid",
     "__version__",
     "build_covariances",
     "build_precisions",
+    "confusion_matrix",
     "normalize_quaternions",
+    "per_class_iou",
     "positional_encoding",
     "protocol_classes",
     "quaternions_to_rotation_matrices",

@@ -1,0 +1,211 @@
+"""OccupancyMetrics: dataset-level voxel IoU / mIoU under the Occ3D and weak protocols."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import Tensor, nn
+
+from dego._typing import typechecked
+from dego.classes import CLASS_GROUPS, CLASS_NAMES, FREE_LABEL, NUM_CLASSES, PROTOCOL_CLASSES
+from dego.metrics.confusion import binary_occupancy_confusion, confusion_matrix
+from dego.metrics.report import OccupancyReport, per_class_iou
+
+WEAK_REMOVED_CLASSES = (0, 12)
+"""GT classes whose voxels the weakly supervised protocol removes (others, other_flat)."""
+
+
+class OccupancyMetrics(nn.Module):
+    """Pooled voxel IoU metrics with a torchmetrics-style ``update / compute / reset / sync``.
+
+    Args:
+        protocol: ``"weak"`` (GaussianFlowOcc / DeGO: voxels whose gt is others (0) or
+            other_flat (12) are removed from the mask; mIoU over the 15 classes
+            1..11, 13..16) or ``"occ3d"`` (the Occ3D benchmark: mIoU over every class
+            but free, 0..16 for Occ3D-nuScenes).
+        num_classes: C, the number of labels including free (18 for Occ3D-nuScenes).
+            ``"weak"`` is defined on the Occ3D-nuScenes labels and needs C = 18.
+        free_label: the empty-space label (17).
+        ignore_label: gt value whose voxels are skipped (255), or ``None``.
+        groups: class groups averaged into ``report.group_means``; defaults to the paper's
+            InsM / ScnM / HCM for Occ3D-nuScenes labels, none otherwise.
+        device: where the state lives (inputs on other devices are reduced where they are
+            and only the small count matrices are moved).
+
+    State (buffers, in ``state_dict``): ``confusion`` int64 ``(C, C)`` (rows gt, columns
+    pred) and ``geometric`` int64 ``(2, 2)`` (0 occupied, 1 free), pooled over every
+    voxel seen, never averaged per sample.
+    """
+
+    confusion: Tensor
+    geometric: Tensor
+
+    def __init__(
+        self,
+        protocol: str = "weak",
+        num_classes: int = NUM_CLASSES,
+        free_label: int = FREE_LABEL,
+        ignore_label: int | None = 255,
+        groups: Mapping[str, Sequence[int]] | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        if protocol not in PROTOCOL_CLASSES:
+            raise ValueError(
+                f"protocol: expected one of {sorted(PROTOCOL_CLASSES)}, got {protocol!r}"
+            )
+        if not isinstance(num_classes, int) or num_classes < 2:
+            raise ValueError(f"num_classes: expected an int >= 2, got {num_classes!r}")
+        if not 0 <= free_label < num_classes:
+            raise ValueError(f"free_label: {free_label} must lie in 0..{num_classes - 1}")
+        if ignore_label is not None and 0 <= ignore_label < num_classes:
+            raise ValueError(
+                f"ignore_label: {ignore_label} collides with a class in 0..{num_classes - 1}"
+            )
+        if protocol == "weak" and (num_classes, free_label) != (NUM_CLASSES, FREE_LABEL):
+            raise ValueError(
+                "protocol: 'weak' is defined on the 18 Occ3D-nuScenes labels "
+                f"(num_classes=18, free_label=17), got num_classes={num_classes}, "
+                f"free_label={free_label}"
+            )
+        if groups is None:
+            groups = CLASS_GROUPS if num_classes == NUM_CLASSES else {}
+        for name, ids in groups.items():
+            if any(not 0 <= int(i) < num_classes for i in ids):
+                raise ValueError(
+                    f"groups: group {name!r} has ids {list(ids)} outside 0..{num_classes - 1}"
+                )
+        self.protocol = protocol
+        self.num_classes = num_classes
+        self.free_label = free_label
+        self.ignore_label = ignore_label
+        self.groups = {name: tuple(int(i) for i in ids) for name, ids in groups.items()}
+        if protocol == "weak":
+            self.evaluated_classes = PROTOCOL_CLASSES["weak"]
+            self.removed_classes: tuple[int, ...] = WEAK_REMOVED_CLASSES
+        else:
+            self.evaluated_classes = tuple(c for c in range(num_classes) if c != free_label)
+            self.removed_classes = ()
+        kw = {"dtype": torch.int64, "device": device}
+        self.register_buffer("confusion", torch.zeros(num_classes, num_classes, **kw))
+        self.register_buffer("geometric", torch.zeros(2, 2, **kw))
+        self._synced: tuple[Tensor, Tensor] | None = None
+
+    # -- accumulation -----------------------------------------------------------------
+    @typechecked
+    def update(
+        self,
+        pred: Tensor | np.ndarray,
+        gt: Tensor | np.ndarray,
+        mask: Tensor | np.ndarray | None = None,
+    ) -> None:
+        """Add one batch of label grids ``(X, Y, Z)`` or ``(B, X, Y, Z)`` to the state.
+
+        Args:
+            pred: predicted labels in ``0..C-1``, any integer dtype.
+            gt: ground-truth labels in ``0..C-1`` or ``ignore_label``, same shape.
+            mask: optional camera mask, bool (or uint8 holding only 0/1), same shape.
+        """
+        if gt.ndim < 3:
+            raise ValueError(
+                f"gt: expected a label grid (X, Y, Z) or (B, X, Y, Z), got shape {tuple(gt.shape)}"
+            )
+        confusion = confusion_matrix(
+            pred,
+            gt,
+            mask,
+            num_classes=self.num_classes,
+            ignore_label=self.ignore_label,
+            removed_classes=self.removed_classes,
+        ).to(self.confusion.device)
+        self.confusion += confusion
+        self.geometric += binary_occupancy_confusion(confusion, self.free_label)
+        self._synced = None
+
+    def merge(self, other: OccupancyMetrics) -> OccupancyMetrics:
+        """Add another instance's state into this one (same configuration); returns ``self``."""
+        if not isinstance(other, OccupancyMetrics):
+            raise TypeError(f"other: expected OccupancyMetrics, got {type(other).__name__}")
+        if other._config() != self._config():
+            raise ValueError(
+                f"other: configuration {other._config()} differs from {self._config()}"
+            )
+        self.confusion += other.confusion.to(self.confusion.device)
+        self.geometric += other.geometric.to(self.geometric.device)
+        self._synced = None
+        return self
+
+    def reset(self) -> None:
+        """Zero the state."""
+        self.confusion.zero_()
+        self.geometric.zero_()
+        self._synced = None
+
+    def sync(self, process_group: Any = None) -> OccupancyMetrics:
+        """All-reduce (sum) the state over the ranks of ``process_group``; returns ``self``.
+
+        A no-op when torch.distributed is not initialised. The local state is kept, so
+        ``sync`` can be called again safely; ``compute`` uses the synced totals until the
+        next ``update``, ``merge``, ``reset`` or ``load_state_dict``.
+        """
+        if not (dist.is_available() and dist.is_initialized()):
+            return self
+        state = torch.cat([self.confusion.reshape(-1), self.geometric.reshape(-1)])
+        if dist.get_backend(process_group) == "nccl" and state.device.type != "cuda":
+            state = state.to(torch.device("cuda", torch.cuda.current_device()))
+        dist.all_reduce(state, op=dist.ReduceOp.SUM, group=process_group)
+        state = state.to(self.confusion.device)
+        c = self.num_classes
+        self._synced = (state[: c * c].view(c, c), state[c * c :].view(2, 2))
+        return self
+
+    # -- results ----------------------------------------------------------------------
+    def compute(self) -> OccupancyReport:
+        """IoU, per-class IoU, mIoU and group means of everything seen (synced if ``sync``-ed)."""
+        confusion, geometric = self._synced or (self.confusion, self.geometric)
+        if int(confusion.sum()) == 0:
+            raise RuntimeError("compute: no voxel has been evaluated yet; call update() first")
+        occupied_iou = per_class_iou(geometric)[0]
+        class_names = (
+            CLASS_NAMES
+            if self.num_classes == NUM_CLASSES
+            else tuple(f"class_{i}" for i in range(self.num_classes))
+        )
+        return OccupancyReport.from_per_class(
+            per_class_iou(confusion),
+            evaluated_classes=self.evaluated_classes,
+            groups=self.groups,
+            class_names=class_names,
+            iou=float(occupied_iou),
+            protocol=self.protocol,
+        )
+
+    # -- (de)serialisation ------------------------------------------------------------
+    def _config(self) -> dict[str, Any]:
+        return {
+            "protocol": self.protocol,
+            "num_classes": self.num_classes,
+            "free_label": self.free_label,
+            "ignore_label": self.ignore_label,
+            "groups": {k: list(v) for k, v in self.groups.items()},
+        }
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return self._config()
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        if state != self._config():
+            raise ValueError(
+                f"state_dict: saved configuration {state} differs from {self._config()}"
+            )
+        self._synced = None
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={v!r}" for k, v in self._config().items() if k != "groups")
+
+
+__all__ = ["WEAK_REMOVED_CLASSES", "OccupancyMetrics"]

@@ -1,0 +1,169 @@
+"""IoU summaries of occupancy predictions: per-class IoU, mIoU, geometric IoU, group means."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
+
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+from dego._typing import typechecked
+
+
+@typechecked
+def per_class_iou(confusion: Int[Tensor, "C C"]) -> Float[Tensor, " C"]:
+    """IoU ``tp / (tp + fp + fn)`` per class from a confusion matrix (rows gt), float64.
+
+    A class that is neither in gt nor predicted gets NaN (0/0), as in Occ3D; one that is
+    predicted but absent from gt gets 0.
+    """
+    confusion = confusion.double()
+    tp = confusion.diagonal()
+    return tp / (confusion.sum(0) + confusion.sum(1) - tp)
+
+
+_DISPLAY_NAMES = {"insm": "InsM", "scnm": "ScnM", "hcm": "HCM"}
+
+
+def _nanmean(values: Tensor) -> float:
+    finite = values[~values.isnan()]
+    return float(finite.mean()) if finite.numel() else math.nan
+
+
+def _percent(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value * 100:.2f}"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class OccupancyReport:
+    """Scores of a set of occupancy predictions; every value is a fraction in [0, 1] (or NaN).
+
+    Attributes:
+        per_class: ``(C,)`` float64 IoU of every label (free included); NaN where a class
+            has neither gt nor predictions among the evaluated voxels.
+        miou: nanmean of ``per_class`` over ``evaluated_classes``.
+        iou: geometric IoU of occupied (label != free) vs free, over the same voxels.
+        group_means: nanmean of ``per_class`` over each group (``insm``, ``scnm``, ``hcm``
+            by default), from the same pooled per-class vector.
+        protocol: ``"occ3d"`` or ``"weak"`` (or ``"custom"`` for hand-built reports).
+        evaluated_classes: the classes averaged into ``miou``.
+        groups: the class ids of each group.
+        class_names: names of all C labels.
+    """
+
+    per_class: Tensor
+    miou: float
+    iou: float
+    group_means: Mapping[str, float]
+    protocol: str
+    evaluated_classes: tuple[int, ...]
+    groups: Mapping[str, tuple[int, ...]]
+    class_names: tuple[str, ...]
+
+    @classmethod
+    def from_per_class(
+        cls,
+        per_class: Tensor | Sequence[float],
+        *,
+        evaluated_classes: Sequence[int],
+        groups: Mapping[str, Sequence[int]],
+        class_names: Sequence[str],
+        iou: float = math.nan,
+        protocol: str = "custom",
+    ) -> OccupancyReport:
+        """Summarise a per-class IoU vector (fractions, NaN for absent classes).
+
+        This is the single place where mIoU and the group means are computed; it also
+        lets published per-class numbers be re-summarised (divide percentages by 100).
+        """
+        per_class = torch.as_tensor(per_class, dtype=torch.float64).detach().cpu()
+        if per_class.ndim != 1 or per_class.shape[0] != len(class_names):
+            raise ValueError(
+                f"per_class: expected shape ({len(class_names)},) to match class_names, "
+                f"got {tuple(per_class.shape)}"
+            )
+        for name, ids in {"evaluated_classes": evaluated_classes, **groups}.items():
+            if any(not 0 <= i < len(class_names) for i in ids):
+                raise ValueError(
+                    f"{name}: class ids {list(ids)} must lie in 0..{len(class_names) - 1}"
+                )
+        frozen_groups = MappingProxyType({k: tuple(int(i) for i in v) for k, v in groups.items()})
+        return cls(
+            per_class=per_class,
+            miou=_nanmean(per_class[list(evaluated_classes)]),
+            iou=float(iou),
+            group_means=MappingProxyType(
+                {k: _nanmean(per_class[list(v)]) for k, v in frozen_groups.items()}
+            ),
+            protocol=protocol,
+            evaluated_classes=tuple(int(i) for i in evaluated_classes),
+            groups=frozen_groups,
+            class_names=tuple(class_names),
+        )
+
+    def _group(self, name: str) -> float:
+        if name not in self.group_means:
+            raise AttributeError(
+                f"group {name!r} is not configured; groups are {list(self.groups)}"
+            )
+        return self.group_means[name]
+
+    @property
+    def insm(self) -> float:
+        """Mean IoU over instance classes (barrier .. truck by default)."""
+        return self._group("insm")
+
+    @property
+    def scnm(self) -> float:
+        """Mean IoU over scene classes (driveable, sidewalk, terrain, manmade, vegetation)."""
+        return self._group("scnm")
+
+    @property
+    def hcm(self) -> float:
+        """Mean IoU over human-centric classes (bicycle, motorcycle, pedestrian)."""
+        return self._group("hcm")
+
+    def as_dict(self, *, percent: bool = False) -> dict[str, float]:
+        """Flat ``{"iou", "miou", <group>, "iou/<class>"}`` for loggers.
+
+        Values are fractions, or percentages rounded to 2 decimals (the papers' numbers)
+        with ``percent=True``. Per-class entries cover ``evaluated_classes``.
+        """
+
+        def fmt(v: float) -> float:
+            return round(v * 100, 2) if percent else v
+
+        out = {"iou": fmt(self.iou), "miou": fmt(self.miou)}
+        out.update({name: fmt(value) for name, value in self.group_means.items()})
+        for label in self.evaluated_classes:
+            out[f"iou/{self.class_names[label]}"] = fmt(float(self.per_class[label]))
+        return out
+
+    def table(self) -> str:
+        """A paper-style text table: percentages with two decimals, '-' for absent classes."""
+        groups = {_DISPLAY_NAMES.get(k, k): v for k, v in self.group_means.items()}
+        summary = {"IoU": self.iou, **groups, "mIoU": self.miou}
+        lines = [
+            f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes",
+            "| " + " | ".join(f"{k:>6}" for k in summary) + " |",
+            "|" + "|".join("-" * 8 for _ in summary) + "|",
+            "| " + " | ".join(f"{_percent(v):>6}" for v in summary.values()) + " |",
+            "",
+            f"| {'class':<22} | {'IoU':>6} | groups",
+            f"|{'-' * 24}|{'-' * 8}|{'-' * 8}",
+        ]
+        for label in self.evaluated_classes:
+            member_of = ", ".join(g for g, ids in self.groups.items() if label in ids)
+            value = _percent(float(self.per_class[label]))
+            lines.append(f"| {self.class_names[label]:<22} | {value:>6} | {member_of}".rstrip())
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.table()
+
+
+__all__ = ["OccupancyReport", "per_class_iou"]
