@@ -10,14 +10,13 @@ a float64 closed-form reference, for well-conditioned and very flat Gaussians.
 
 from __future__ import annotations
 
-import argparse
 import math
 
 import torch
 
 from dego import GaussianSet
 
-from harness import compare, print_comparison
+from harness import benchmark_parser, run_comparison
 
 
 def random_set(n: int, scale_range: tuple[float, float], device: torch.device) -> GaussianSet:
@@ -37,10 +36,8 @@ def relative_error(estimate: torch.Tensor, exact: torch.Tensor) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--device", default="cpu")
+    parser = benchmark_parser(__doc__, repeats=20)
     parser.add_argument("--n", type=int, default=200_000, help="number of Gaussians")
-    parser.add_argument("--repeats", type=int, default=20)
     args = parser.parse_args()
     device = torch.device(args.device)
 
@@ -62,11 +59,12 @@ def main() -> None:
             f"inv {relative_error(naive(), exact):.1e}; inv singular: {failed}"
         )
         cases[label] = (gs.precisions, naive)
-    print_comparison(
-        f"precisions(): closed form (ours) vs torch.linalg.inv_ex(covariances()) [N={args.n}, "
-        f"float32, {device}, torch {torch.__version__}, threads {torch.get_num_threads()}]",
-        compare(cases, device, repeats=args.repeats),
-        notes,
+    run_comparison(
+        f"precisions(): closed form (ours) vs linalg.inv_ex(covariances()), N={args.n}, float32",
+        cases,
+        device,
+        repeats=args.repeats,
+        notes=notes,
     )
 
 

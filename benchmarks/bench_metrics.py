@@ -11,14 +11,12 @@ side by side on the same inputs; the confusion matrices are checked to be identi
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import torch
 
 from dego import OccupancyMetrics
 
-from harness import compare, print_comparison
+from harness import benchmark_parser, run_comparison
 
 
 def occ3d_like_sample(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -43,10 +41,7 @@ def numpy_reference(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--repeats", type=int, default=200)
-    args = parser.parse_args()
+    args = benchmark_parser(__doc__, repeats=200).parse_args()
     device = torch.device(args.device)
 
     pred, gt, mask = occ3d_like_sample()
@@ -67,12 +62,13 @@ def main() -> None:
             return numpy_reference(pred, gt, mask, protocol)
 
         cases[f"update, protocol={protocol}"] = (ours, reference)
-    print_comparison(
-        f"OccupancyMetrics.update (ours, {device}) vs numpy Occ3D recipe (CPU), one 200x200x16 "
-        f"uint8 sample [torch {torch.__version__}, numpy {np.__version__}, "
-        f"threads {torch.get_num_threads()}]",
-        compare(cases, device, repeats=args.repeats),
-        notes,
+    run_comparison(
+        f"OccupancyMetrics.update (ours) vs numpy {np.__version__} Occ3D recipe (CPU), "
+        "one 200x200x16 uint8 sample",
+        cases,
+        device,
+        repeats=args.repeats,
+        notes=notes,
     )
 
 

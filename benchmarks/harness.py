@@ -9,6 +9,7 @@ glibc has returned its cached free pages to the OS.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import ctypes
 import ctypes.util
@@ -144,3 +145,25 @@ def print_comparison(
             f"{ref.seconds / ours.seconds:>9.2f}x{ours.peak_mib:>10.1f}{ref.peak_mib:>10.1f}"
             f"  {notes.get(case, '')}"
         )
+
+
+def benchmark_parser(doc: str, *, repeats: int) -> argparse.ArgumentParser:
+    """Argument parser with the options every benchmark shares: ``--device``, ``--repeats``."""
+    parser = argparse.ArgumentParser(description=doc.strip().splitlines()[0])
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--repeats", type=int, default=repeats, help="timed calls per case")
+    return parser
+
+
+def run_comparison(
+    title: str,
+    cases: dict[str, Case],
+    device: torch.device,
+    *,
+    repeats: int,
+    notes: dict[str, str] | None = None,
+) -> None:
+    """Measure every case with :func:`compare` and print the table, headed by ``title``
+    and the software versions."""
+    versions = f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}"
+    print_comparison(f"{title} [{versions}]", compare(cases, device, repeats=repeats), notes)

@@ -24,12 +24,39 @@ QUATERNION_EPS = 1e-12
 """Norms below this are treated as zero when normalising quaternions."""
 
 
+def _normalize(quats: Tensor, eps: float = QUATERNION_EPS) -> Tensor:
+    return quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(eps)
+
+
+def _rotation_matrices(quats: Tensor) -> Tensor:
+    w, x, y, z = _normalize(quats).unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = (
+        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+    )  # fmt: skip
+    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
+
+
+def _gram_of_scaled_rotation(quats: Tensor, column_scales: Tensor) -> Tensor:
+    """``(R diag(c)) (R diag(c))^T = R diag(c^2) R^T``, symmetric by construction."""
+    scaled = _rotation_matrices(quats) * column_scales.unsqueeze(-2)
+    return scaled @ scaled.transpose(-1, -2)
+
+
+# The public helpers check shapes; GaussianSet (validated once at construction) and other
+# internal callers use the private versions above so that checks are not paid per call.
+
+
 @typechecked
 def normalize_quaternions(
     quats: Float[Tensor, "*batch 4"], eps: float = QUATERNION_EPS
 ) -> Float[Tensor, "*batch 4"]:
     """Scale quaternions ``(*, 4)`` (wxyz) to unit norm; norms below ``eps`` are clamped."""
-    return quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(eps)
+    return _normalize(quats, eps)
 
 
 @typechecked
@@ -41,29 +68,7 @@ def quaternions_to_rotation_matrices(
     The result is quadratic in the unit quaternion, so ``q``, ``-q`` and ``lambda * q``
     (``lambda != 0``) give the same matrix.
     """
-    w, x, y, z = normalize_quaternions(quats).unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    rows = (
-        1 - 2 * (yy + zz),
-        2 * (xy - wz),
-        2 * (xz + wy),
-        2 * (xy + wz),
-        1 - 2 * (xx + zz),
-        2 * (yz - wx),
-        2 * (xz - wy),
-        2 * (yz + wx),
-        1 - 2 * (xx + yy),
-    )
-    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
-
-
-def _gram_of_scaled_rotation(
-    quats: Tensor, column_scales: Tensor
-) -> Tensor:  # (R diag(c)) (R diag(c))^T = R diag(c^2) R^T, symmetric by construction
-    scaled = quaternions_to_rotation_matrices(quats) * column_scales.unsqueeze(-2)
-    return scaled @ scaled.transpose(-1, -2)
+    return _rotation_matrices(quats)
 
 
 @typechecked
@@ -217,15 +222,15 @@ class GaussianSet:
     # -- geometry ---------------------------------------------------------------------
     def rotation_matrices(self) -> Float[Tensor, "*batch N 3 3"]:
         """Rotation matrices ``(*batch, N, 3, 3)`` of the (normalised) quaternions."""
-        return quaternions_to_rotation_matrices(self.quats)
+        return _rotation_matrices(self.quats)
 
     def covariances(self) -> Float[Tensor, "*batch N 3 3"]:
         """Covariances ``R diag(s^2) R^T``, ``(*batch, N, 3, 3)``."""
-        return build_covariances(self.quats, self.scales)
+        return _gram_of_scaled_rotation(self.quats, self.scales)
 
     def precisions(self) -> Float[Tensor, "*batch N 3 3"]:
         """Inverse covariances ``R diag(1/s^2) R^T``, ``(*batch, N, 3, 3)`` (no inversion)."""
-        return build_precisions(self.quats, self.scales)
+        return _gram_of_scaled_rotation(self.quats, self.scales.reciprocal())
 
     # -- tensor plumbing --------------------------------------------------------------
     def to(self, *args: Any, **kwargs: Any) -> GaussianSet:
