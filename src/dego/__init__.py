@@ -28,6 +28,7 @@ from dego.gaussians import (
 )
 from dego.grid import VoxelGrid
 from dego.metrics import OccupancyMetrics, OccupancyReport, confusion_matrix, per_class_iou
+from dego.splatting import DifferentiableSplatter, SplatOutput, splat
 
 __all__ = [
     "CLASS_GROUPS",
@@ -39,11 +40,13 @@ __all__ = [
     "PALETTE",
     "PROTOCOL_CLASSES",
     "SCENE_CLASSES",
+    "DifferentiableSplatter",
     "GaussianSet",
     "Occ3DLabel",
     "OccupancyMetrics",
     "OccupancyReport",
     "PositionalEncoding",
+    "SplatOutput",
     "VoxelGrid",
     "__version__",
     "build_covariances",
@@ -54,4 +57,5 @@ __all__ = [
     "positional_encoding",
     "protocol_classes",
     "quaternions_to_rotation_matrices",
+    "splat",
 ]

@@ -1,0 +1,51 @@
+"""Backend selection of the splatter: "auto" falls back to torch, "gsplat" says why it cannot run."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import pytest
+import torch
+
+from dego import splat
+from tests.strategies import make_gaussian_set
+
+
+def scene(device: str = "cpu"):
+    gs = make_gaussian_set(
+        (1,), 20, feature_dim=3, dtype=torch.float32, seed=2, scale_range=(0.05, 0.5), extent=1.0
+    )
+    gs = gs.replace(means=gs.means + torch.tensor([0.0, 0.0, 4.0]))
+    w2c = torch.eye(4).expand(1, 2, 4, 4).clone()
+    w2c[:, 1, 0, 3] = 0.3
+    k = torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]).expand(1, 2, 3, 3).contiguous()
+    return gs.to(device), w2c.to(device), k.to(device)
+
+
+def test_auto_on_cpu_is_the_torch_path() -> None:
+    gs, w2c, k = scene()
+    torch_out = splat(gs, w2c, k, (32, 48))
+    auto_out = splat(gs, w2c, k, (32, 48), backend="auto")
+    for name in ("features", "depth", "alpha", "radii"):
+        assert torch.equal(getattr(torch_out, name), getattr(auto_out, name)), name
+
+
+def test_gsplat_backend_explains_why_it_cannot_run() -> None:
+    gs, w2c, k = scene()
+    with pytest.raises(ValueError, match=r"backend: cannot use 'gsplat'.*CUDA"):
+        splat(gs, w2c, k, (32, 48), backend="gsplat")
+    with pytest.raises(ValueError, match=r"max_alpha=0\.99 differs"):
+        splat(gs, w2c, k, (32, 48), backend="gsplat", max_alpha=0.99)
+
+
+@pytest.mark.skipif(
+    not torch.cuda.is_available() or importlib.util.find_spec("gsplat") is None,
+    reason="needs CUDA and gsplat",
+)
+def test_gsplat_backend_matches_torch_path_on_cuda() -> None:
+    gs, w2c, k = scene("cuda")
+    ours = splat(gs, w2c, k, (32, 48))
+    theirs = splat(gs, w2c, k, (32, 48), backend="gsplat")
+    torch.testing.assert_close(theirs.features, ours.features, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(theirs.alpha, ours.alpha, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(theirs.depth, ours.depth, rtol=1e-4, atol=1e-3)
