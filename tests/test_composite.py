@@ -6,7 +6,37 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dego.splatting.composite import CompositeRules, _alphas, _transmittances, composite_chunk
+from dego.splatting.composite import (
+    CompositeRules,
+    _alphas,
+    _chunk_backward,
+    _chunk_forward,
+    _transmittances,
+)
+
+
+class _Chunk(torch.autograd.Function):
+    """One chunk as an autograd node around the library's closed-form backward."""
+
+    @staticmethod
+    def forward(ctx, transmittance, finished, mean, conic, opacity, color, origins, rules):
+        ctx.save_for_backward(transmittance, finished, mean, conic, opacity, color, origins)
+        ctx.rules = rules
+        return _chunk_forward(transmittance, finished, mean, conic, opacity, color, origins, rules)[
+            :2
+        ]
+
+    @staticmethod
+    def backward(ctx, grad_contribution, grad_transmittance):
+        grads = _chunk_backward(
+            *ctx.saved_tensors, ctx.rules, grad_contribution, grad_transmittance
+        )
+        grad_in, grad_mean, grad_conic, grad_opacity, grad_color = grads
+        return grad_in, None, grad_mean, grad_conic, grad_opacity, grad_color, None, None
+
+
+def composite_chunk(*args):
+    return _Chunk.apply(*args)
 
 
 def autograd_chunk(transmittance, finished, mean, conic, opacity, color, origins, rules):
@@ -47,7 +77,7 @@ def test_custom_backward_equals_autograd(seed: int, transmittance_min: float) ->
     rules = CompositeRules(0.999, 1 / 255, transmittance_min)
     t, fin, mean, conic, opacity, color, origins = random_chunk(seed)
     inputs = [x.clone().requires_grad_() for x in (t, mean, conic, opacity, color)]
-    ours = composite_chunk(inputs[0], fin, *inputs[1:], origins, rules)[:2]
+    ours = composite_chunk(inputs[0], fin, *inputs[1:], origins, rules)
     reference = autograd_chunk(inputs[0], fin, *inputs[1:], origins, rules)
     for a, b in zip(ours, reference, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
@@ -70,6 +100,6 @@ def test_gradcheck_chunk() -> None:
     inputs = tuple(x.clone().requires_grad_() for x in (t, mean, conic, opacity, color))
 
     def fn(t, mean, conic, opacity, color):
-        return composite_chunk(t, fin, mean, conic, opacity, color, origins, rules)[:2]
+        return composite_chunk(t, fin, mean, conic, opacity, color, origins, rules)
 
     assert torch.autograd.gradcheck(fn, inputs)

@@ -3,8 +3,8 @@
 Every tile's list is walked in chunks of ``chunk_size`` Gaussians; all tiles that still
 have Gaussians and unsaturated pixels advance one chunk per step, in groups of at most
 ``max_pairs / (chunk_size * tile_size^2)`` tiles. The running transmittance is carried
-between chunks. Each (chunk, group) step is one autograd node that keeps only its small
-per-Gaussian inputs and recomputes the per-(Gaussian, pixel) values in backward, so
+between chunks. The loop is one autograd node that keeps only each step's indices and
+incoming pixel state and recomputes the per-(Gaussian, pixel) values in backward, so
 peak memory is set by ``max_pairs``, not by the total number of (Gaussian, pixel) pairs.
 """
 
@@ -61,93 +61,33 @@ def _transmittances(start: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
     return relative_before, start.unsqueeze(1) * product
 
 
-class _CompositeChunk(torch.autograd.Function):
-    """Composite K sorted Gaussians into G tiles, with a hand-written, recomputing backward.
-
-    Forward keeps nothing of size (G, K, S, S); backward recomputes alpha and the
-    transmittances once and applies the closed-form gradients of front-to-back
-    compositing, which costs about one forward pass less than autograd through the
-    same operations.
-    """
-
-    @staticmethod
-    def forward(  # type: ignore[override]
-        ctx: torch.autograd.function.FunctionCtx,
-        transmittance: Tensor,  # (G, S, S) at the start of the chunk
-        finished: Tensor,  # (G, S, S) bool: pixel already stopped
-        mean: Tensor,  # (G, K, 2)
-        conic: Tensor,  # (G, K, 3)
-        opacity: Tensor,  # (G, K), 0 for padding
-        color: Tensor,  # (G, K, D)
-        origins: Tensor,  # (G, 2)
-        rules: CompositeRules,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        size = transmittance.shape[-1]
-        alpha = _alphas(mean, conic, opacity, origins, size, rules)[0]
-        # A finished pixel enters with zero transmittance, so it blocks and weighs nothing.
-        start = transmittance.masked_fill(finished, 0.0)
-        relative_before, after = _transmittances(start, alpha)
-        # A pixel stops before the first Gaussian that would take its transmittance to
-        # transmittance_min or below; "after" is non-increasing, so blocked stays blocked.
-        blocked = after <= rules.transmittance_min
-        weights = (relative_before * alpha).mul_(start.unsqueeze(1)).masked_fill_(blocked, 0.0)
-        contribution = torch.bmm(weights.flatten(2).transpose(1, 2), color)  # (G, S*S, D)
-        new_transmittance = torch.where(finished, transmittance, start - weights.sum(1))
-        new_finished = finished | blocked[:, -1]
-        ctx.save_for_backward(transmittance, finished, mean, conic, opacity, color, origins)
-        ctx.rules = rules
-        ctx.mark_non_differentiable(new_finished)
-        return contribution, new_transmittance, new_finished
-
-    @staticmethod
-    def backward(  # type: ignore[override]
-        ctx: torch.autograd.function.FunctionCtx,
-        grad_contribution: Tensor,
-        grad_transmittance: Tensor,
-        _: Tensor,
-    ) -> tuple[Tensor | None, ...]:
-        transmittance, finished, mean, conic, opacity, color, origins = ctx.saved_tensors
-        rules: CompositeRules = ctx.rules
-        g, k, _d = color.shape
-        size = transmittance.shape[-1]
-        alpha, raw, skip, dx, dy = _alphas(mean, conic, opacity, origins, size, rules)
-        start = transmittance.masked_fill(finished, 0.0)
-        relative_before, after = _transmittances(start, alpha)
-        blocked = after <= rules.transmittance_min
-        del after
-        # L = sum_k w_k (g_out . c_k) + g_T (start - sum_k w_k), w_k = start r_k alpha_k with
-        # r_k = prod_{j<k} (1 - alpha_j); h_k = dL/dw_k, zero where blocked (w_k = 0).
-        grad_t = grad_transmittance.masked_fill(finished, 0.0)
-        h = torch.bmm(color, grad_contribution.transpose(1, 2)).view(g, k, size, size)
-        h.sub_(grad_t.unsqueeze(1)).masked_fill_(blocked, 0.0)
-        weights = (relative_before * alpha).mul_(start.unsqueeze(1)).masked_fill_(blocked, 0.0)
-        grad_color = torch.bmm(weights.flatten(2), grad_contribution)
-        wh = weights.mul_(h)
-        grad_start = grad_t + wh.sum(1) / start.clamp_min(1e-30)
-        later = wh.sum(1, keepdim=True) - torch.cumsum(wh, dim=1)  # sum over i > k of w_i h_i
-        del wh
-        # dL/dalpha_k = start r_k h_k - (sum_{i>k} w_i h_i) / (1 - alpha_k)
-        grad_alpha = relative_before.mul_(start.unsqueeze(1)).mul_(h)
-        grad_alpha.sub_(later.div_((1 - alpha).clamp_min_(1e-30)))
-        grad_in = torch.where(finished, grad_transmittance, grad_start)
-        # alpha = where(skip, 0, min(raw, max_alpha)), raw = exp(log o - sigma)
-        grad_logit = grad_alpha.mul_(raw).masked_fill_(skip | (raw > rules.max_alpha), 0.0)
-        per_col = grad_logit.sum(-2)  # (G, K, S): summed over rows
-        per_row = grad_logit.sum(-1)  # (G, K, S): summed over columns
-        x1, x2 = (per_col * dx).sum(-1), (per_col * dx * dx).sum(-1)
-        y1, y2 = (per_row * dy).sum(-1), (per_row * dy * dy).sum(-1)
-        xy = (torch.einsum("gkrc,gkc->gkr", grad_logit, dx) * dy).sum(-1)
-        a, b, c = conic.unbind(-1)
-        # d(-sigma)/d(mean) = -(a dx + b dy, c dy + b dx)
-        # d(-sigma)/d(a, b, c) = -(dx^2 / 2, dx dy, dy^2 / 2)
-        grad_mean = -torch.stack([a * x1 + b * y1, c * y1 + b * x1], -1)
-        grad_conic = -torch.stack([0.5 * x2, xy, 0.5 * y2], -1)
-        total = grad_logit.sum((-1, -2))
-        grad_opacity = torch.where(opacity > 1e-30, total / opacity.clamp_min(1e-30), 0.0)
-        return grad_in, None, grad_mean, grad_conic, grad_opacity, grad_color, None, None
+def _chunk_forward(
+    transmittance: Tensor,  # (G, S, S) at the start of the chunk
+    finished: Tensor,  # (G, S, S) bool: pixel already stopped
+    mean: Tensor,  # (G, K, 2)
+    conic: Tensor,  # (G, K, 3)
+    opacity: Tensor,  # (G, K), 0 for padding
+    color: Tensor,  # (G, K, D)
+    origins: Tensor,  # (G, 2)
+    rules: CompositeRules,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Composite K sorted Gaussians into G tiles (no autograd): the colour contribution
+    ``(G, S*S, D)``, the transmittance after the chunk and the updated ``finished``."""
+    size = transmittance.shape[-1]
+    alpha = _alphas(mean, conic, opacity, origins, size, rules)[0]
+    # A finished pixel enters with zero transmittance, so it blocks and weighs nothing.
+    start = transmittance.masked_fill(finished, 0.0)
+    relative_before, after = _transmittances(start, alpha)
+    # A pixel stops before the first Gaussian that would take its transmittance to
+    # transmittance_min or below; "after" is non-increasing, so blocked stays blocked.
+    blocked = after <= rules.transmittance_min
+    weights = (relative_before * alpha).mul_(start.unsqueeze(1)).masked_fill_(blocked, 0.0)
+    contribution = torch.bmm(weights.flatten(2).transpose(1, 2), color)
+    new_transmittance = torch.where(finished, transmittance, start - weights.sum(1))
+    return contribution, new_transmittance, finished | blocked[:, -1]
 
 
-def composite_chunk(
+def _chunk_backward(
     transmittance: Tensor,
     finished: Tensor,
     mean: Tensor,
@@ -156,12 +96,168 @@ def composite_chunk(
     color: Tensor,
     origins: Tensor,
     rules: CompositeRules,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Composite one chunk (see :class:`_CompositeChunk`): returns the colour contribution
-    ``(G, S*S, D)``, the transmittance after the chunk and the updated ``finished`` mask."""
-    return _CompositeChunk.apply(
-        transmittance, finished, mean, conic, opacity, color, origins, rules
+    grad_contribution: Tensor,  # (G, S*S, D)
+    grad_transmittance: Tensor,  # (G, S, S) of the transmittance after the chunk
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Closed-form gradients of :func:`_chunk_forward`, recomputing alpha once.
+
+    Returns the gradients of the incoming transmittance, mean, conic, opacity and colour.
+    """
+    g, k, _ = color.shape
+    size = transmittance.shape[-1]
+    alpha, raw, skip, dx, dy = _alphas(mean, conic, opacity, origins, size, rules)
+    start = transmittance.masked_fill(finished, 0.0)
+    relative_before, after = _transmittances(start, alpha)
+    blocked = after <= rules.transmittance_min
+    del after
+    # L = sum_k w_k (g_out . c_k) + g_T (start - sum_k w_k), w_k = start r_k alpha_k with
+    # r_k = prod_{j<k} (1 - alpha_j); h_k = dL/dw_k, zero where blocked (w_k = 0).
+    grad_t = grad_transmittance.masked_fill(finished, 0.0)
+    h = torch.bmm(color, grad_contribution.transpose(1, 2)).view(g, k, size, size)
+    h.sub_(grad_t.unsqueeze(1)).masked_fill_(blocked, 0.0)
+    weights = (relative_before * alpha).mul_(start.unsqueeze(1)).masked_fill_(blocked, 0.0)
+    grad_color = torch.bmm(weights.flatten(2), grad_contribution)
+    wh = weights.mul_(h)
+    grad_start = grad_t + wh.sum(1) / start.clamp_min(1e-30)
+    later = wh.sum(1, keepdim=True) - torch.cumsum(wh, dim=1)  # sum over i > k of w_i h_i
+    del wh
+    # dL/dalpha_k = start r_k h_k - (sum_{i>k} w_i h_i) / (1 - alpha_k)
+    grad_alpha = relative_before.mul_(start.unsqueeze(1)).mul_(h)
+    grad_alpha.sub_(later.div_((1 - alpha).clamp_min_(1e-30)))
+    grad_in = torch.where(finished, grad_transmittance, grad_start)
+    # alpha = where(skip, 0, min(raw, max_alpha)), raw = exp(log o - sigma)
+    grad_logit = grad_alpha.mul_(raw).masked_fill_(skip | (raw > rules.max_alpha), 0.0)
+    per_col = grad_logit.sum(-2)  # (G, K, S): summed over rows
+    per_row = grad_logit.sum(-1)  # (G, K, S): summed over columns
+    x1, x2 = (per_col * dx).sum(-1), (per_col * dx * dx).sum(-1)
+    y1, y2 = (per_row * dy).sum(-1), (per_row * dy * dy).sum(-1)
+    xy = (torch.einsum("gkrc,gkc->gkr", grad_logit, dx) * dy).sum(-1)
+    a, b, c = conic.unbind(-1)
+    # d(-sigma)/d(mean) = -(a dx + b dy, c dy + b dx)
+    # d(-sigma)/d(a, b, c) = -(dx^2 / 2, dx dy, dy^2 / 2)
+    grad_mean = -torch.stack([a * x1 + b * y1, c * y1 + b * x1], -1)
+    grad_conic = -torch.stack([0.5 * x2, xy, 0.5 * y2], -1)
+    total = grad_logit.sum((-1, -2))
+    grad_opacity = torch.where(opacity > 1e-30, total / opacity.clamp_min(1e-30), 0.0)
+    return grad_in, grad_mean, grad_conic, grad_opacity, grad_color
+
+
+@dataclasses.dataclass(frozen=True)
+class _Step:
+    """What backward needs of one (chunk, tile group) step: tiny next to its pairs."""
+
+    group: Tensor  # (G,) tile indices
+    ids: Tensor  # (G, K) flat Gaussian indices (padding repeats a valid index)
+    valid: Tensor  # (G, K) bool: not padding
+    transmittance: Tensor  # (G, S, S) before the step
+    finished: Tensor  # (G, S, S) before the step
+
+    def chunk_inputs(
+        self, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, origins: Tensor
+    ) -> tuple[Tensor, ...]:
+        """The step's arguments of :func:`_chunk_forward` / :func:`_chunk_backward`."""
+        ids = self.ids
+        opacity = torch.where(self.valid, opacities[ids], 0.0)
+        return (
+            self.transmittance,
+            self.finished,
+            means2d[ids],
+            conics[ids],
+            opacity,
+            colors[ids],
+            origins[self.group],
+        )
+
+
+class _CompositeTiles(torch.autograd.Function):
+    """The whole chunked compositing loop as one autograd node.
+
+    Forward runs without autograd and records, per step, only the tiles, the Gaussian
+    indices and the incoming per-pixel state. Backward walks the steps in reverse,
+    recomputes each with :func:`_chunk_backward` and accumulates the per-Gaussian
+    gradients into one buffer each, carrying the transmittance gradient per tile.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx,
+        means2d: Tensor,
+        conics: Tensor,
+        opacities: Tensor,
+        colors: Tensor,
+        lists: TileLists,
+        tile_size: int,
+        rules: CompositeRules,
+        chunk_size: int,
+        max_pairs: int,
+    ) -> tuple[Tensor, Tensor]:
+        num_tiles, dim = lists.num_tiles, colors.shape[-1]
+        device, dtype = colors.device, colors.dtype
+        pixels = tile_size * tile_size
+        out = torch.zeros(num_tiles, pixels, dim, device=device, dtype=dtype)
+        transmittance = torch.ones(num_tiles, tile_size, tile_size, device=device, dtype=dtype)
+        finished = torch.zeros(num_tiles, tile_size, tile_size, device=device, dtype=torch.bool)
+        origins = _tile_origins(lists, tile_size, dtype)
+        ends = lists.starts + lists.counts
+        last = max(lists.gaussians.shape[0] - 1, 0)
+        offsets = torch.arange(chunk_size, device=device)
+        group_size = max(1, max_pairs // (chunk_size * pixels))
+        steps: list[_Step] = []
+
+        active = torch.arange(num_tiles, device=device)[lists.counts > 0]
+        step = 0
+        while active.numel():
+            for group in active.split(group_size):
+                position = lists.starts[group, None] + step * chunk_size + offsets
+                valid = position < ends[group, None]
+                ids = lists.gaussians[position.clamp(max=last)]
+                record = _Step(group, ids, valid, transmittance[group], finished[group])
+                contribution, t_new, f_new = _chunk_forward(
+                    *record.chunk_inputs(means2d, conics, opacities, colors, origins), rules
+                )
+                out.index_add_(0, group, contribution)
+                transmittance.index_copy_(0, group, t_new)
+                finished.index_copy_(0, group, f_new)
+                steps.append(record)
+            step += 1
+            more = (lists.counts[active] > step * chunk_size) & ~finished[active].flatten(1).all(1)
+            active = active[more]
+
+        ctx.save_for_backward(means2d, conics, opacities, colors, origins)
+        ctx.steps, ctx.rules = steps, rules
+        return out.view(num_tiles, tile_size, tile_size, dim), transmittance
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx, grad_out: Tensor, grad_transmittance: Tensor
+    ) -> tuple[Tensor | None, ...]:
+        means2d, conics, opacities, colors, origins = ctx.saved_tensors
+        grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, colors)]
+        grad_out = grad_out.flatten(1, 2)  # (T, S*S, D)
+        grad_t = grad_transmittance.clone()  # gradient of the running transmittance, per tile
+        for record in reversed(ctx.steps):
+            ids, valid, group = record.ids, record.valid, record.group
+            grad_in, *per_gaussian = _chunk_backward(
+                *record.chunk_inputs(means2d, conics, opacities, colors, origins),
+                ctx.rules,
+                grad_out[group],
+                grad_t[group],
+            )
+            grad_t.index_copy_(0, group, grad_in)
+            per_gaussian[2] = per_gaussian[2] * valid  # padding repeats real ids
+            flat_ids = ids.reshape(-1)
+            for total, grad in zip(grads, per_gaussian, strict=True):
+                total.index_add_(0, flat_ids, grad.flatten(0, 1))
+        return (*grads, None, None, None, None, None)
+
+
+def _tile_origins(lists: TileLists, tile_size: int, dtype: torch.dtype) -> Tensor:
+    """``(T, 2)`` pixel-centre coordinates of each tile's first pixel."""
+    in_image = torch.arange(lists.num_tiles, device=lists.counts.device) % (
+        lists.tiles_x * lists.tiles_y
     )
+    origins = torch.stack([in_image % lists.tiles_x, in_image // lists.tiles_x], -1)
+    return origins.to(dtype) * tile_size + 0.5
 
 
 def composite_tiles(
@@ -177,44 +273,8 @@ def composite_tiles(
     max_pairs: int,
 ) -> tuple[Tensor, Tensor]:
     """Composite every tile; returns per-tile colour sums ``(T, S, S, D)`` and final
-    transmittance ``(T, S, S)`` for the ``T = lists.num_tiles`` tiles."""
-    num_tiles, dim = lists.num_tiles, colors.shape[-1]
-    device, dtype = colors.device, colors.dtype
-    pixels = tile_size * tile_size
-    out = torch.zeros(num_tiles, pixels, dim, device=device, dtype=dtype)
-    transmittance = torch.ones(num_tiles, tile_size, tile_size, device=device, dtype=dtype)
-    finished = torch.zeros(num_tiles, tile_size, tile_size, device=device, dtype=torch.bool)
-
-    tile_index = torch.arange(num_tiles, device=device)
-    in_image = tile_index % (lists.tiles_x * lists.tiles_y)
-    origins = torch.stack([in_image % lists.tiles_x, in_image // lists.tiles_x], -1)
-    origins = origins.to(dtype) * tile_size + 0.5
-    ends = lists.starts + lists.counts
-    last = max(lists.gaussians.shape[0] - 1, 0)
-    offsets = torch.arange(chunk_size, device=device)
-    group_size = max(1, max_pairs // (chunk_size * pixels))
-
-    active = tile_index[lists.counts > 0]
-    step = 0
-    while active.numel():
-        for group in active.split(group_size):
-            position = lists.starts[group, None] + step * chunk_size + offsets
-            valid = position < ends[group, None]
-            ids = lists.gaussians[position.clamp(max=last)]
-            contribution, t_new, f_new = composite_chunk(
-                transmittance[group],
-                finished[group],
-                means2d[ids],
-                conics[ids],
-                torch.where(valid, opacities[ids], 0.0),
-                colors[ids],
-                origins[group],
-                rules,
-            )
-            out.index_add_(0, group, contribution)
-            transmittance.index_copy_(0, group, t_new)
-            finished[group] = f_new
-        step += 1
-        more = (lists.counts[active] > step * chunk_size) & ~finished[active].flatten(1).all(1)
-        active = active[more]
-    return out.view(num_tiles, tile_size, tile_size, dim), transmittance
+    transmittance ``(T, S, S)`` for the ``T = lists.num_tiles`` tiles. Differentiable
+    w.r.t. ``means2d``, ``conics``, ``opacities`` and ``colors``."""
+    return _CompositeTiles.apply(
+        means2d, conics, opacities, colors, lists, tile_size, rules, chunk_size, max_pairs
+    )

@@ -179,9 +179,9 @@ def splat(
             rasteriser, needs ``pip install dego[gsplat]`` and CUDA tensors) or ``"auto"``
             (gsplat when it is usable and the settings match its compiled constants).
         chunk_size: Gaussians composited per tile per step.
-        max_pairs: bound on (Gaussian, pixel) pairs held at once; peak memory is about
-            ``max_pairs * 4 bytes * ~20`` intermediates (x3 during backward), whatever N is.
-            Smaller values use less memory and more, smaller steps.
+        max_pairs: bound on (Gaussian, pixel) pairs held at once; the compositing peak is
+            about ``max_pairs * itemsize * 15`` bytes (backward), whatever N is. Smaller
+            values use less memory and more, smaller steps.
 
     Differentiable w.r.t. the Gaussians' means, quats, scales and opacities, the features
     and the background (not the cameras' intrinsics).
@@ -272,11 +272,6 @@ def _render(
         chunk_size=config.chunk_size,
         max_pairs=config.max_pairs,
     )
-    inputs = [t for t in (proj.means2d, proj.conics, opacities, colors) if t.requires_grad]
-    if inputs and not tiles.requires_grad:
-        # Nothing was drawn: keep the outputs in the graph so that backward gives zeros.
-        anchor = sum((t * 0).sum() for t in inputs)
-        tiles, transmittance = tiles + anchor, transmittance + anchor
     ts, tx, ty = config.tile_size, lists.tiles_x, lists.tiles_y
     # (B*V*ty*tx, S, S, D) -> (B, V, D, ty*S, tx*S), cropped to (H, W)
     d = tiles.shape[-1]
