@@ -29,6 +29,7 @@ from dego.gaussians import (
 from dego.grid import VoxelGrid
 from dego.metrics import OccupancyMetrics, OccupancyReport, confusion_matrix, per_class_iou
 from dego.splatting import DifferentiableSplatter, SplatOutput, splat
+from dego.voxelizer import GaussianVoxelizer, VoxelOutput, voxelize
 
 __all__ = [
     "CLASS_GROUPS",
@@ -42,12 +43,14 @@ __all__ = [
     "SCENE_CLASSES",
     "DifferentiableSplatter",
     "GaussianSet",
+    "GaussianVoxelizer",
     "Occ3DLabel",
     "OccupancyMetrics",
     "OccupancyReport",
     "PositionalEncoding",
     "SplatOutput",
     "VoxelGrid",
+    "VoxelOutput",
     "__version__",
     "build_covariances",
     "build_precisions",
@@ -58,4 +61,5 @@ __all__ = [
     "protocol_classes",
     "quaternions_to_rotation_matrices",
     "splat",
+    "voxelize",
 ]
