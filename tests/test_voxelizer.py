@@ -245,6 +245,29 @@ def test_cube_matches_the_official_algorithm(gs: GaussianSet, nbh: int) -> None:
 
 
 @settings(max_examples=10)
+@given(scenes(extent=3.0, max_n=60, dtype=torch.float32), st.sampled_from([1, 2, 3]))
+def test_cube_float32_matches_the_official_float32_algorithm(gs: GaussianSet, nbh: int) -> None:
+    # Same centres and centre-minus-mean differences as the official float32 code; only its
+    # float32 rounding of the quadratic and the summation order differ.
+    out = voxelize(gs, GRID, neighborhood="cube", nbh=nbh)
+    density, features = official_cube_voxelize(gs, GRID, None, nbh)
+    torch.testing.assert_close(out.density, density, atol=1e-6, rtol=0)
+    scale = max(1.0, float(features.abs().max()))
+    torch.testing.assert_close(out.features, features, atol=1e-6 * scale, rtol=0)
+
+
+@pytest.mark.parametrize("mode", ["additive", "probabilistic"])
+def test_cube_values_do_not_depend_on_grad_mode(mode: str) -> None:
+    gs = make_gaussian_set((2,), 40, seed=3, feature_dim=3, extent=2.5, dtype=torch.float32)
+    with torch.no_grad():
+        plain = voxelize(gs, GRID, mode=mode, neighborhood="cube", nbh=2)
+    tracked = voxelize(requiring_grad(gs), GRID, mode=mode, neighborhood="cube", nbh=2)
+    assert tracked.density.requires_grad
+    assert torch.equal(tracked.density.detach(), plain.density)
+    assert torch.equal(tracked.features.detach(), plain.features)
+
+
+@settings(max_examples=10)
 @given(scenes(extent=3.0), st.sampled_from([0, 1, 2]))
 def test_cube_probabilistic_matches_cube_masked_dense_reference(gs: GaussianSet, nbh: int) -> None:
     out = voxelize(gs, GRID, mode="probabilistic", neighborhood="cube", nbh=nbh)

@@ -102,60 +102,79 @@ class VoxelizerConfig:
             raise ValueError(f"chunk_size: expected a positive int, got {self.chunk_size!r}")
 
 
-def _index_boxes(
-    gaussians: GaussianSet, grid: VoxelGrid, config: VoxelizerConfig
+def _ellipsoid_boxes(
+    gaussians: GaussianSet, grid: VoxelGrid, cutoff_sigma: float
 ) -> tuple[Tensor, Tensor]:
-    """Inclusive per-axis voxel index ranges ``(M, 3)`` low / high of each Gaussian's
-    neighbourhood, clipped to the grid (empty where high < low)."""
+    """Inclusive per-axis voxel index ranges ``(M, 3)`` low / high of the voxels whose centres
+    lie in the axis-aligned box of each Gaussian's ``cutoff_sigma`` ellipsoid, clipped to the
+    grid (empty where high < low)."""
     means = gaussians.means.detach().reshape(-1, 3)
     lower = torch.tensor(grid.lower, dtype=means.dtype, device=means.device)
     size = torch.tensor(grid.voxel_size, dtype=means.dtype, device=means.device)
     shape = torch.tensor(grid.shape, device=means.device)
     position = (means - lower) / size  # in voxel units; centre of voxel i is at i + 0.5
-    if config.neighborhood == "cube":
-        centre = torch.floor(position).long()
-        low, high = centre - config.nbh, centre + config.nbh
-    else:
-        # sqrt(Sigma_jj) = |row j of R diag(s)|
-        scaled_rotation = (
-            gaussians.rotation_matrices().detach() * gaussians.scales.detach().unsqueeze(-2)
-        )
-        std = scaled_rotation.square().sum(-1).sqrt().reshape(-1, 3)
-        half = config.cutoff_sigma * std / size
-        # voxel i is inside iff |i + 0.5 - position| <= half
-        low = torch.ceil(position - half - 0.5).long()
-        high = torch.floor(position + half - 0.5).long()
+    # sqrt(Sigma_jj) = |row j of R diag(s)|
+    scaled_rotation = gaussians.rotation_matrices().detach() * gaussians.scales.detach().unsqueeze(
+        -2
+    )
+    std = scaled_rotation.square().sum(-1).sqrt().reshape(-1, 3)
+    half = cutoff_sigma * std / size
+    # voxel i is inside iff |i + 0.5 - position| <= half
+    low = torch.ceil(position - half - 0.5).long()
+    high = torch.floor(position + half - 0.5).long()
     return low.clamp(min=0), torch.minimum(high, shape - 1)
 
 
-def _pair_terms(
+def _pair_quadratic(
     means: Tensor,  # (M, 3)
     precisions: Tensor,  # (M, 6): xx, yy, zz, xy, xz, yz
-    opacities: Tensor,  # (M,)
-    features: Tensor,  # (M, C)
     owner: Tensor,  # (P,) Gaussian of each pair
     centres: Tensor,  # (P, 3) voxel centre of each pair
-    log_normaliser: Tensor,  # (M,) log of (2 pi)^(-3/2) sqrt(det P)
-    probabilistic: bool,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-pair density term, feature term and (probabilistic) mixture weight."""
+) -> Tensor:
+    """Per-pair Mahalanobis quadratic ``d^T P d`` ``(P,)`` from the 6 unique entries."""
     d = centres - means[owner]
     p = precisions[owner]
     dx, dy, dz = d.unbind(-1)
-    quadratic = (
+    return (
         p[:, 0] * dx * dx
         + p[:, 1] * dy * dy
         + p[:, 2] * dz * dz
         + 2 * (p[:, 3] * dx * dy + p[:, 4] * dx * dz + p[:, 5] * dy * dz)
     )
+
+
+def _kernel_terms(
+    quadratic: Tensor,  # (P,)
+    opacity: Tensor,  # (P,) opacity of each pair's Gaussian
+    features: Tensor,  # (P, C) features of each pair's Gaussian
+    log_normaliser: Tensor,  # (P,) log of (2 pi)^(-3/2) sqrt(det P) of each pair's Gaussian
+    probabilistic: bool,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-pair density term, feature term and (probabilistic) mixture weight."""
     g = torch.exp(-0.5 * quadratic)
-    opacity = opacities[owner]
     if not probabilistic:
-        return opacity * g, g.unsqueeze(-1) * features[owner], g.new_zeros(0)
+        return opacity * g, g.unsqueeze(-1) * features, g.new_zeros(0)
     # log(1 - o g), kept finite where o g reaches 1 (a single Gaussian then saturates)
     survival = torch.log1p(-(opacity * g).clamp(max=1 - torch.finfo(g.dtype).eps))
-    weight = opacity * torch.exp(log_normaliser[owner] - 0.5 * quadratic)
-    return survival, weight.unsqueeze(-1) * features[owner], weight
+    weight = opacity * torch.exp(log_normaliser - 0.5 * quadratic)
+    return survival, weight.unsqueeze(-1) * features, weight
+
+
+def _pair_terms(
+    means: Tensor,
+    precisions: Tensor,
+    opacities: Tensor,  # (M,)
+    features: Tensor,  # (M, C)
+    owner: Tensor,
+    centres: Tensor,
+    log_normaliser: Tensor,  # (M,)
+    probabilistic: bool,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_kernel_terms` of the (Gaussian ``owner``, voxel centre) pairs."""
+    quadratic = _pair_quadratic(means, precisions, owner, centres)
+    return _kernel_terms(
+        quadratic, opacities[owner], features[owner], log_normaliser[owner], probabilistic
+    )
 
 
 def _chunks(counts: Tensor, chunk_size: int) -> list[tuple[int, int]]:
@@ -234,9 +253,6 @@ def _voxelize(
     channels = features.shape[-1]
     probabilistic = config.mode == "probabilistic"
 
-    low, high = _index_boxes(gaussians, grid, config)
-    extent = (high - low + 1).clamp(min=0)  # (M, 3)
-    counts = extent.prod(-1)
     precision = _gram_of_scaled_rotation(gaussians.quats, gaussians.scales.reciprocal())
     precision = precision.reshape(-1, 3, 3)
     precision6 = torch.stack(
@@ -257,6 +273,11 @@ def _voxelize(
     lower = torch.tensor(grid.lower, dtype=dtype, device=device)
     size = torch.tensor(grid.voxel_size, dtype=dtype, device=device)
 
+    if config.neighborhood == "cube":
+        return _voxelize_cube(gaussians, grid, flat_features, precision6, log_normaliser, config)
+    low, high = _ellipsoid_boxes(gaussians, grid, config.cutoff_sigma)
+    extent = (high - low + 1).clamp(min=0)  # (M, 3)
+    counts = extent.prod(-1)
     num_voxels = b * x * y * z
     density = torch.zeros(num_voxels, dtype=dtype, device=device)
     accumulated = torch.zeros(num_voxels, channels, dtype=dtype, device=device)
@@ -264,8 +285,6 @@ def _voxelize(
     grad_needed = torch.is_grad_enabled() and any(
         t.requires_grad for t in (means, precision6, opacities, flat_features)
     )
-    if config.neighborhood == "cube":
-        return _voxelize_cube(gaussians, grid, flat_features, precision6, log_normaliser, config)
     for start, stop in _chunks(counts, config.chunk_size):
         with torch.no_grad():
             owner = torch.arange(start, stop, device=device).repeat_interleave(counts[start:stop])
@@ -320,6 +339,59 @@ def _finish(
     return VoxelOutput(density=density.view(*shape), features=accumulated.view(*shape, -1))
 
 
+def _cube_quadratics(
+    means: Tensor,  # (n, 3)
+    precisions: Tensor,  # (n, 6): xx, yy, zz, xy, xz, yz
+    cell: Tensor,  # (n, 3) long, voxel index of each mean (may be off-grid)
+    axis_centres: tuple[Tensor, Tensor, Tensor],  # the grid's voxel centres along x, y, z
+    r: Tensor,  # (K,) offsets -nbh..nbh
+) -> Tensor:
+    """``(n, K, K, K)`` float64 quadratics ``d^T P d`` over each Gaussian's cube.
+
+    ``d`` is formed per axis as (the grid's centre) - (mean) in the input dtype, exactly the
+    official code's ``d``; the quadratic form is then separable into (n, K) and (n, K, K)
+    terms broadcast together, so nothing is gathered per (Gaussian, voxel) pair. Off-grid
+    cube cells get clamped (meaningless) values: the caller drops them.
+    """
+    d = []
+    for a, centres in enumerate(axis_centres):
+        index = (cell[:, a, None] + r).clamp(0, centres.shape[0] - 1)
+        d.append((centres[index] - means[:, a, None]).double())
+    dx, dy, dz = d
+    p = precisions.double()
+    xy = p[:, 0, None, None] * (dx * dx)[:, :, None] + p[:, 1, None, None] * (dy * dy)[:, None]
+    xy = xy + 2 * p[:, 3, None, None] * dx[:, :, None] * dy[:, None, :]
+    xz = 2 * p[:, 4, None, None] * dx[:, :, None] * dz[:, None, :]
+    yz = (
+        p[:, 2, None, None] * (dz * dz)[:, None, :]
+        + 2 * p[:, 5, None, None] * dy[:, :, None] * dz[:, None, :]
+    )
+    return (xy[..., None] + xz[:, :, None, :]) + yz[:, None, :, :]
+
+
+def _cube_pair_terms(
+    means: Tensor,  # (n, 3) this chunk's Gaussians
+    precisions: Tensor,  # (n, 6)
+    opacities: Tensor,  # (n,)
+    features: Tensor,  # (n, C)
+    log_normaliser: Tensor,  # (n,)
+    cell: Tensor,  # (n, 3)
+    local: Tensor,  # (P,) Gaussian of each kept pair, in the chunk
+    flat: Tensor,  # (P,) its index into the flattened (n, K, K, K) quadratics
+    axis_centres: tuple[Tensor, Tensor, Tensor],
+    r: Tensor,
+    probabilistic: bool,
+) -> tuple[Tensor, Tensor, Tensor]:
+    quadratic = _cube_quadratics(means, precisions, cell, axis_centres, r).flatten()[flat]
+    return _kernel_terms(
+        quadratic.to(means.dtype),
+        opacities[local],
+        features[local],
+        log_normaliser[local],
+        probabilistic,
+    )
+
+
 def _voxelize_cube(
     gaussians: GaussianSet,
     grid: VoxelGrid,
@@ -328,8 +400,9 @@ def _voxelize_cube(
     log_normaliser: Tensor,
     config: VoxelizerConfig,
 ) -> VoxelOutput:
-    """The official fixed-cube neighbourhood, evaluated by broadcasting over the shared
-    ``(2 nbh + 1)^3`` offsets, a bounded number of Gaussians at a time."""
+    """The official fixed-cube neighbourhood: quadratics of all ``(2 nbh + 1)^3`` cells of a
+    bounded number of Gaussians at once, negligible and off-grid pairs dropped, the rest
+    reduced with ``index_add_``."""
     b, n = gaussians.batch_shape[0], gaussians.num_gaussians
     dtype, device = gaussians.dtype, gaussians.device
     x, y, z = grid.shape
@@ -339,93 +412,75 @@ def _voxelize_cube(
     size = torch.tensor(grid.voxel_size, dtype=dtype, device=device)
     shape = torch.tensor(grid.shape, device=device)
     r = torch.arange(-config.nbh, config.nbh + 1, device=device)
+    cube_size = r.shape[0] ** 3
     offsets = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
-    offsets_float = offsets.to(dtype)
-    offsets_world = offsets_float * size
     offsets_flat = (offsets[:, 0] * y + offsets[:, 1]) * z + offsets[:, 2]
-    ox, oy, oz = offsets_world.unbind(-1)
-    offsets_monomials = torch.stack(
-        [ox * ox, oy * oy, oz * oz, 2 * ox * oy, 2 * ox * oz, 2 * oy * oz], -1
+    # the same float operations as the grid's own centres (and the official code's)
+    axis_centres = tuple(
+        lower[a] + (torch.arange(grid.shape[a], device=device, dtype=dtype) + 0.5) * size[a]
+        for a in range(3)
     )
-    means = gaussians.means.reshape(-1, 3)
+    means, opacities = gaussians.means.reshape(-1, 3), gaussians.opacities.reshape(-1)
     with torch.no_grad():
         cell = torch.floor((means.detach() - lower) / size).long()  # (M, 3), may be off-grid
         batch = torch.arange(b * n, device=device) // max(n, 1)
         cell_flat = batch * (x * y * z) + (cell[:, 0] * y + cell[:, 1]) * z + cell[:, 2]
-        cell_float = cell.to(dtype)  # whole numbers: exact, so centres round as the grid's
-        cell_centres = lower + (cell_float + 0.5) * size
-    means, opacities = gaussians.means.reshape(-1, 3), gaussians.opacities.reshape(-1)
-    precision_detached = precision6.detach()
 
     num_voxels = b * x * y * z
-    density = torch.zeros(num_voxels + 1, dtype=dtype, device=device)  # last slot: discarded
-    accumulated = torch.zeros(num_voxels + 1, channels, dtype=dtype, device=device)
-    weights = torch.zeros(num_voxels + 1 if probabilistic else 0, dtype=dtype, device=device)
+    density = torch.zeros(num_voxels, dtype=dtype, device=device)
+    accumulated = torch.zeros(num_voxels, channels, dtype=dtype, device=device)
+    weights = torch.zeros(num_voxels if probabilistic else 0, dtype=dtype, device=device)
     grad_needed = torch.is_grad_enabled() and any(
         t.requires_grad for t in (means, precision6, opacities, features)
     )
-    per_chunk = max(1, config.chunk_size // offsets.shape[0])
+    per_chunk = max(1, config.chunk_size // cube_size)
     for start in range(0, b * n, per_chunk):
         part = slice(start, start + per_chunk)
         with torch.no_grad():
-            # Candidate cells by broadcasting the shared offsets; pairs whose kernel value
-            # is below _NEGLIGIBLE (far cube corners of small Gaussians, mostly) or that
-            # fall off the grid are dropped before any per-pair gather.
-            # q = (b + o)^T P (b + o) = b^T P b + 2 (P b) . o + P : o o^T, two small GEMMs
-            base = cell_centres[part] - means[part].detach()
-            p = precision_detached[part]
-            pb = torch.stack(
-                [
-                    p[:, 0] * base[:, 0] + p[:, 3] * base[:, 1] + p[:, 4] * base[:, 2],
-                    p[:, 3] * base[:, 0] + p[:, 1] * base[:, 1] + p[:, 5] * base[:, 2],
-                    p[:, 4] * base[:, 0] + p[:, 5] * base[:, 1] + p[:, 2] * base[:, 2],
-                ],
-                -1,
-            )
-            quadratic = torch.addmm(
-                torch.addmm((pb * base).sum(-1, keepdim=True), pb, offsets_world.T, alpha=2),
-                p,
-                offsets_monomials.T,
+            quadratic = _cube_quadratics(
+                means[part].detach(), precision6[part].detach(), cell[part], axis_centres, r
             )
             axis_ok = [
                 ((cell[part, a, None] + r) >= 0) & ((cell[part, a, None] + r) < shape[a])
                 for a in range(3)
             ]
-            inside = (
+            keep = (
                 axis_ok[0][:, :, None, None]
                 & axis_ok[1][:, None, :, None]
                 & axis_ok[2][:, None, None, :]
-            ).flatten(1)
+            )
             # In probabilistic mode a tiny kernel can still carry a large normalised mixture
             # weight, so only the additive mode skips negligible pairs.
-            keep = inside if probabilistic else inside & (quadratic < _NEGLIGIBLE_QUADRATIC)
-            local, k = keep.nonzero(as_tuple=True)
-            owner = start + local
-            voxel = cell_flat[owner] + offsets_flat[k]
-            # same float operations as the grid's own centres (and the official code)
-            centres = lower + (cell_float[owner] + offsets_float[k] + 0.5) * size
-        args = (
-            means,
-            precision6,
-            opacities,
-            features,
-            owner,
-            centres,
-            log_normaliser,
-            probabilistic,
-        )
-        terms = (
-            checkpoint(_pair_terms, *args, use_reentrant=False)
-            if grad_needed
-            else _pair_terms(*args)
-        )
+            if not probabilistic:
+                keep &= quadratic < _NEGLIGIBLE_QUADRATIC
+            flat = keep.flatten().nonzero().squeeze(1)
+            local = flat // cube_size
+            voxel = cell_flat[start + local] + offsets_flat[flat % cube_size]
+        if grad_needed:
+            inputs = (means, precision6, opacities, features, log_normaliser, cell)
+            terms = checkpoint(
+                _cube_pair_terms,
+                *(t[part] for t in inputs),
+                local,
+                flat,
+                axis_centres,
+                r,
+                probabilistic,
+                use_reentrant=False,
+            )
+        else:  # the screening quadratics are the values: no recomputation
+            terms = _kernel_terms(
+                quadratic.flatten()[flat].to(dtype),
+                opacities[part][local],
+                features[part][local],
+                log_normaliser[part][local],
+                probabilistic,
+            )
         density.index_add_(0, voxel, terms[0])
         accumulated.index_add_(0, voxel, terms[1])
         if probabilistic:
             weights.index_add_(0, voxel, terms[2])
-    if probabilistic:
-        weights = weights[:-1]
-    return _finish(density[:-1], accumulated[:-1], weights, probabilistic, (b, x, y, z))
+    return _finish(density, accumulated, weights, probabilistic, (b, x, y, z))
 
 
 class GaussianVoxelizer(nn.Module):
