@@ -7,6 +7,8 @@ import sys
 from importlib import resources
 from pathlib import Path
 
+import pytest
+
 import dego
 
 
@@ -22,17 +24,17 @@ def test_typed_marker_is_shipped() -> None:
     assert resources.files("dego").joinpath("py.typed").is_file()
 
 
-def test_benchmark_script_runs_on_a_small_case() -> None:
+@pytest.mark.parametrize(
+    "script, args",
+    [
+        ("bench_gaussians.py", ["--n", "500", "--repeats", "2"]),
+        ("bench_deformation.py", ["--n", "300", "--t", "3", "--channels", "16", "--repeats", "1"]),
+    ],
+)
+def test_benchmark_script_runs_on_a_small_case(script: str, args: list[str]) -> None:
     root = Path(__file__).resolve().parents[1]
     result = subprocess.run(
-        [
-            sys.executable,
-            str(root / "benchmarks" / "bench_gaussians.py"),
-            "--n",
-            "500",
-            "--repeats",
-            "2",
-        ],
+        [sys.executable, str(root / "benchmarks" / script), *args],
         capture_output=True,
         text=True,
         timeout=300,

@@ -18,6 +18,13 @@ from dego.classes import (
     Occ3DLabel,
     protocol_classes,
 )
+from dego.deformation import (
+    DecoupledDeformation,
+    DeformationDeltas,
+    DeformationLossWeights,
+    DeformationOutput,
+    deformation_loss,
+)
 from dego.encoding import PositionalEncoding, positional_encoding
 from dego.gaussians import (
     GaussianSet,
@@ -41,6 +48,10 @@ __all__ = [
     "PALETTE",
     "PROTOCOL_CLASSES",
     "SCENE_CLASSES",
+    "DecoupledDeformation",
+    "DeformationDeltas",
+    "DeformationLossWeights",
+    "DeformationOutput",
     "DifferentiableSplatter",
     "GaussianSet",
     "GaussianVoxelizer",
@@ -55,6 +66,7 @@ __all__ = [
     "build_covariances",
     "build_precisions",
     "confusion_matrix",
+    "deformation_loss",
     "normalize_quaternions",
     "per_class_iou",
     "positional_encoding",

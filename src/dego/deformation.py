@@ -1,0 +1,497 @@
+"""Decoupled rigid / nonrigid Gaussian deformation over time (DeGO section 4.1).
+
+A canonical Gaussian set at t = 0 is deformed to T time offsets by one MLP pass over all
+(Gaussian, time) pairs. Each Gaussian i has a rigidity mask m_i in [0, 1] (1 = nonrigid)
+and the update is ``dG = (1 - m) dG_rig + m dG_def`` with ``dG_rig = (d_mu_rig, 0, 0, 0)``
+and ``dG_def = (d_mu_def, d_rot, d_scale, d_opacity)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from dego._typing import typechecked
+from dego.encoding import positional_encoding
+from dego.gaussians import GaussianSet, _normalize
+from dego.grid import VoxelGrid
+
+Preset = Literal["paper", "official"]
+
+PARAMETERS = ("means", "quats", "scales", "opacities")
+"""The deformed Gaussian parameters, in the order of the paper's ``{mu, r, s, alpha}``."""
+
+MAX_LOG_SCALE_CHANGE = 5.0
+"""``paper`` preset: log-scale deltas are soft-bounded to +-5 (a factor e^5 ~ 148) by
+``5 tanh(d / 5)``, so deformed scales stay positive and finite whatever the network says."""
+
+_CPU_CHUNK_ROWS = 4096  # (Gaussian, time) rows per feature-net chunk on CPU: cache-sized
+_MAX_LOGIT_SHIFT = 50.0  # beyond this the shifted opacity equals 0 or 1 in float32 anyway
+
+# The official code's constants (vggt-and-deformation-facts.md section 4).
+_OFFICIAL_OFFSET_CLAMP = 10.0  # metres
+_OFFICIAL_SCALE_CLAMP = 1.0  # metres, added to a linear scale
+_OFFICIAL_QUAT_EPS = 1e-8
+
+
+@dataclasses.dataclass(frozen=True)
+class DeformationLossWeights:
+    """Weights of :func:`deformation_loss`.
+
+    ``L_reg = sum_p lambda_p mean ||d_p||^2`` over p in :data:`PARAMETERS` and
+    ``L_def = reg * L_reg + mask * L_mask``. The paper gives no values; both presets
+    default to the official code's (every lambda_p = 1, reg 10, mask 0.5).
+    """
+
+    means: float = 1.0
+    quats: float = 1.0
+    scales: float = 1.0
+    opacities: float = 1.0
+    reg: float = 10.0
+    mask: float = 0.5
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"{field.name}: expected a finite weight >= 0, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DeformationDeltas:
+    """Applied deltas per parameter, each ``(B, T, N, k)`` (opacities ``(B, T, N)``).
+
+    ``paper``: the update in each parameter's own space, after the mask: position offset
+    in metres, the quaternion increment's offset from the identity, the log-scale change,
+    the opacity-logit change. ``official``: deformed minus canonical value (the official
+    ``L_reg`` terms).
+    """
+
+    means: Float[Tensor, "B T N 3"]
+    quats: Float[Tensor, "B T N 4"]
+    scales: Float[Tensor, "B T N 3"]
+    opacities: Float[Tensor, "B T N"]
+
+
+@dataclasses.dataclass(frozen=True)
+class DeformationOutput:
+    """Result of :class:`DecoupledDeformation`.
+
+    Attributes:
+        gaussians: the deformed sets, batch shape ``(B, T)``; features carried unchanged.
+        rigid_mask: m, ``(B, N)`` (``paper``: one per Gaussian) or ``(B, T, N)``
+            (``official``: time-dependent); 1 = nonrigid.
+        deltas: the applied deltas (:class:`DeformationDeltas`).
+        rigid_offsets: raw rigid position head ``d_mu_rig`` ``(B, T, N, 3)``.
+        nonrigid_offsets: raw nonrigid position head ``d_mu_def`` ``(B, T, N, 3)``
+            (``official``: the same tensor as ``rigid_offsets``).
+        preset: the preset that produced it; :func:`deformation_loss` follows it.
+        loss_weights: the module's default loss weights.
+    """
+
+    gaussians: GaussianSet
+    rigid_mask: Float[Tensor, "B N"] | Float[Tensor, "B T N"]
+    deltas: DeformationDeltas
+    rigid_offsets: Float[Tensor, "B T N 3"]
+    nonrigid_offsets: Float[Tensor, "B T N 3"]
+    preset: Preset
+    loss_weights: DeformationLossWeights
+
+    @property
+    def num_times(self) -> int:
+        return self.gaussians.batch_shape[1]
+
+    def at(self, t_index: int) -> GaussianSet:
+        """The deformed set ``(B, N)`` at time index ``t_index`` (negative counts from the end)."""
+        t = self.num_times
+        if isinstance(t_index, bool) or not isinstance(t_index, int) or not -t <= t_index < t:
+            raise IndexError(f"t_index: expected an int in [{-t}, {t}), got {t_index!r}")
+        return self.gaussians._map(lambda _, v: v[:, t_index])
+
+
+def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
+    """``layers`` Linear layers with ReLU between them (none after the last)."""
+    dims = [in_dim] + [hidden] * (layers - 1) + [out_dim]
+    modules: list[nn.Module] = []
+    for i in range(layers):
+        modules.append(nn.Linear(dims[i], dims[i + 1]))
+        if i < layers - 1:
+            modules.append(nn.ReLU())
+    return nn.Sequential(*modules)
+
+
+def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product ``a (x) b`` of wxyz quaternions ``(..., 4)`` (broadcasting)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def shift_opacity_logit(opacity: Tensor, shift: Tensor) -> Tensor:
+    """``sigmoid(logit(o) + shift)`` for o in [0, 1], exact where ``shift`` is 0.
+
+    Written as ``o + sign(d) (1 - p) p u / (1 + p u)`` with ``u = expm1(|d|)`` and
+    ``p = o`` (d >= 0) or ``1 - o`` (d < 0): no logit of 0 or 1 is ever taken, so
+    o = 0 (padding) and o = 1 stay fixed with finite gradients.
+    """
+    grow = shift >= 0
+    u = torch.expm1(shift.abs().clamp(max=_MAX_LOGIT_SHIFT))
+    p = torch.where(grow, opacity, 1 - opacity)
+    step = (1 - p) * (p * u / (1 + p * u))
+    return opacity + torch.where(grow, step, -step)
+
+
+class DecoupledDeformation(nn.Module):
+    """DeGO's decoupled Gaussian deformation network.
+
+    Architecture (paper section 4.1 and its hyperparameter table):
+
+    - time embedding ``e_t = MLP(PE_t(t))``: Linear(2 L_t + 1, time_dim), ReLU,
+      Linear(time_dim, time_dim);
+    - feature net: ``depth`` Linear + ReLU layers of width ``hidden_dim`` on
+      ``[f_i, PE_p(mu_i), e_t]``; its first layer is split into a per-Gaussian part and a
+      per-time part, so the ``[f_i, PE_p(mu_i)]`` projection is computed once for all T;
+    - 2-layer heads (Linear(hidden_dim, head_hidden), ReLU, Linear(head_hidden, k)):
+      ``rigid_offset`` (3), ``nonrigid_offset`` (3), ``rotation`` (4), ``scale`` (3),
+      ``opacity`` (1) and the mask logit (1).
+
+    Presets:
+
+    ``"paper"`` (default), the method as written, with positivity-preserving updates:
+        - m is per Gaussian and time-independent: ``sigmoid(mask_net([f, PE_p(mu)]))``;
+        - ``mu' = mu + (1 - m) d_mu_rig + m d_mu_def``;
+        - ``q' = q (x) normalize(1 + m d_rot)``: composing a unit increment keeps the
+          canonical norm, so unit quaternions stay unit;
+        - ``s' = s exp(m d_s)`` with ``d_s`` soft-bounded to +-:data:`MAX_LOG_SCALE_CHANGE`;
+        - ``o' = sigmoid(logit(o) + m d_o)`` (:func:`shift_opacity_logit`);
+        - times divided by ``time_scale``; positions divided by ``pos_scale`` (default:
+          the Occ3D grid's largest absolute bound, 40 m) before PE_p;
+        - PyTorch's default init, except the last layer of every delta head, zero-initialised
+          so the initial deformation is exactly the identity (and m = 0.5);
+        - :func:`deformation_loss`: ``mean ||d_p||^2`` over (B, T, N) of the applied
+          deltas, L_mask over the per-Gaussian masks.
+
+    ``"official"``, the released code's behaviour; differences from ``paper``:
+        1. one position head: ``d_mu_rig`` and ``d_mu_def`` are the same tensor, added to
+           every Gaussian unmasked, clamped to +-10 m (there is no ``nonrigid_offset`` head);
+        2. m depends on time: ``sigmoid(mask_head(h(t)))``, shape ``(B, T, N)``;
+        3. ``q' = q (x) (m normalize(d_rot + 1e-8) + (1 - m) [1, 0, 0, 0])``: the blended
+           increment is not renormalised, so q' is not unit;
+        4. ``s' = s + m clamp(d_s, +-1)``: linear, may become <= 0;
+        5. ``o' = clamp(o + m d_o, 0, 1)``;
+        6. times and positions are used raw (``pos_scale`` defaults to 1; the official
+           time is the frame index 0..16, current = 8);
+        7. every Linear is xavier-uniform initialised with zero bias (the initial
+           deformation is not the identity; m starts near 0.5);
+        8. :func:`deformation_loss`: ``mean((p' - p)^2)`` over all elements, L_mask on the
+           last time step's mask only.
+
+    Args:
+        feature_dim: C_g, channels of the per-Gaussian latent features.
+        pos_levels, time_levels: L_p (6) and L_t (4) of the positional encodings.
+        time_dim: C_t (32). hidden_dim: D_h (256). depth: feature-net layers (6).
+        head_hidden: hidden width of the 2-layer heads (256).
+        preset: ``"paper"`` or ``"official"``.
+        time_scale: times are divided by it (e.g. the clip's largest offset).
+        pos_scale: positions are divided by it before encoding (``None``: preset default).
+        loss_weights: default :class:`DeformationLossWeights` of :func:`deformation_loss`.
+        chunk_rows: about how many (Gaussian, time) rows the feature net and heads process
+            at a time (Gaussians are chunked, every chunk covers all T); a speed knob
+            only: results agree to floating-point rounding. ``None``: 4096 on CPU, where
+            cache-sized chunks are about 1.5x faster, all rows at once elsewhere.
+    """
+
+    def __init__(
+        self,
+        feature_dim: int,
+        *,
+        pos_levels: int = 6,
+        time_levels: int = 4,
+        time_dim: int = 32,
+        hidden_dim: int = 256,
+        depth: int = 6,
+        head_hidden: int = 256,
+        preset: Preset = "paper",
+        time_scale: float = 1.0,
+        pos_scale: float | None = None,
+        loss_weights: DeformationLossWeights | None = None,
+        chunk_rows: int | None = None,
+    ) -> None:
+        super().__init__()
+        for name, value, low in [
+            ("feature_dim", feature_dim, 0),
+            ("pos_levels", pos_levels, 0),
+            ("time_levels", time_levels, 0),
+            ("time_dim", time_dim, 1),
+            ("hidden_dim", hidden_dim, 1),
+            ("depth", depth, 1),
+            ("head_hidden", head_hidden, 1),
+            ("chunk_rows", 1 if chunk_rows is None else chunk_rows, 1),
+        ]:
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
+        if preset not in ("paper", "official"):
+            raise ValueError(f"preset: expected 'paper' or 'official', got {preset!r}")
+        if pos_scale is None:
+            grid = VoxelGrid.occ3d()
+            pos_scale = max(map(abs, (*grid.lower, *grid.upper))) if preset == "paper" else 1.0
+        for name, value in [("time_scale", time_scale), ("pos_scale", pos_scale)]:
+            if not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+        if loss_weights is not None and not isinstance(loss_weights, DeformationLossWeights):
+            raise TypeError(
+                f"loss_weights: expected DeformationLossWeights, got {type(loss_weights).__name__}"
+            )
+        self.feature_dim = feature_dim
+        self.pos_levels, self.time_levels = pos_levels, time_levels
+        self.preset: Preset = preset
+        self.time_scale, self.pos_scale = float(time_scale), float(pos_scale)
+        self.loss_weights = loss_weights or DeformationLossWeights()
+        self.chunk_rows = chunk_rows
+
+        static_dim = feature_dim + 3 * (2 * pos_levels + 1)
+        self.time_embedding = _mlp(2 * time_levels + 1, time_dim, time_dim, 2)
+        # The first feature-net layer on [f, PE(mu), e_t], split by input block.
+        self.input_static = nn.Linear(static_dim, hidden_dim)
+        self.input_time = nn.Linear(time_dim, hidden_dim, bias=False)
+        self.trunk = _mlp(hidden_dim, hidden_dim, hidden_dim, depth - 1) if depth > 1 else None
+        heads = {"rigid_offset": 3, "nonrigid_offset": 3, "rotation": 4, "scale": 3, "opacity": 1}
+        if preset == "official":
+            del heads["nonrigid_offset"]  # one shared position head
+        self.heads = nn.ModuleDict(
+            {name: _mlp(hidden_dim, head_hidden, k, 2) for name, k in heads.items()}
+        )
+        mask_in = static_dim if preset == "paper" else hidden_dim
+        self.mask_head = _mlp(mask_in, head_hidden, 1, 2)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """Re-initialise per the preset (see the class docstring)."""
+        for module in self.modules():
+            if isinstance(module, nn.Linear):
+                module.reset_parameters()
+        if self.preset == "official":
+            for module in self.modules():
+                if isinstance(module, nn.Linear):
+                    nn.init.xavier_uniform_(module.weight)
+                    if module.bias is not None:
+                        nn.init.zeros_(module.bias)
+            # xavier of the split first layer as the one (D_h, fan_in) matrix it stands for
+            fan_out, static_in = self.input_static.weight.shape
+            fan_in = static_in + self.input_time.weight.shape[1]
+            bound = math.sqrt(6.0 / (fan_in + fan_out))
+            for part in (self.input_static.weight, self.input_time.weight):
+                nn.init.uniform_(part, -bound, bound)
+        else:
+            for head in [*self.heads.values(), self.mask_head]:
+                nn.init.zeros_(head[-1].weight)
+                nn.init.zeros_(head[-1].bias)
+
+    def _normalized_times(self, times: Tensor, batch: int) -> Tensor:
+        if not bool(torch.isfinite(times).all()):
+            raise ValueError("times: expected finite values, got NaN or inf")
+        if times.ndim == 1:
+            times = times.expand(batch, -1)
+        elif times.shape[0] != batch:
+            raise ValueError(
+                f"times: expected shape (T,) or (B, T) with B = {batch}, got {tuple(times.shape)}"
+            )
+        return times / self.time_scale
+
+    @typechecked
+    def forward(
+        self,
+        gaussians: GaussianSet,
+        features: Float[Tensor, "B N C"],
+        times: Float[Tensor, " T"] | Float[Tensor, "B T"],
+    ) -> DeformationOutput:
+        """Deform the canonical ``(B, N)`` set to every time in ``times``.
+
+        Args:
+            gaussians: canonical Gaussians at t = 0, batch shape ``(B,)``.
+            features: ``(B, N, C_g)`` per-Gaussian latent features.
+            times: ``(T,)`` offsets shared by the batch or ``(B, T)`` per sample, in the
+                unit of ``time_scale`` (frames or seconds).
+
+        Returns:
+            :class:`DeformationOutput` with ``gaussians`` of batch shape ``(B, T)``.
+        """
+        if len(gaussians.batch_shape) != 1:
+            raise ValueError(
+                f"gaussians: expected batch shape (B,), got {tuple(gaussians.batch_shape)}"
+            )
+        b, n = gaussians.batch_shape[0], gaussians.num_gaussians
+        if features.shape[:2] != (b, n):
+            raise ValueError(
+                f"features: expected shape ({b}, {n}, C_g) to match gaussians, got "
+                f"{tuple(features.shape)}"
+            )
+        if features.shape[-1] != self.feature_dim:
+            raise ValueError(
+                f"features: expected C_g = {self.feature_dim} channels, got {features.shape[-1]}"
+            )
+        for name, value in [("features", features), ("times", times)]:
+            if value.dtype != gaussians.dtype or value.device != gaussians.device:
+                raise ValueError(
+                    f"{name}: expected {gaussians.dtype} on {gaussians.device} like gaussians, "
+                    f"got {value.dtype} on {value.device}"
+                )
+        times = self._normalized_times(times, b)  # (B, T)
+
+        static = torch.cat(
+            [features, positional_encoding(gaussians.means / self.pos_scale, self.pos_levels)], -1
+        )  # (B, N, C_static)
+        embedding = self.time_embedding(positional_encoding(times[..., None], self.time_levels))
+        static_part = self.input_static(static)[:, None]  # (B, 1, N, D_h)
+        time_part = self.input_time(embedding)[:, :, None]  # (B, T, 1, D_h)
+        t = times.shape[1]
+        heads = dict(self.heads)
+        if self.preset == "official":
+            heads["mask"] = self.mask_head
+        # All T at once, over bounded chunks of Gaussians: the arithmetic of one pass,
+        # but on a CPU each chunk's activations stay in cache (about 1.5x faster fwd + bwd).
+        chunk_rows = self.chunk_rows or (_CPU_CHUNK_ROWS if static.device.type == "cpu" else 0)
+        per_chunk = max(1, chunk_rows // (b * t)) if chunk_rows and b * t else max(n, 1)
+        outputs: dict[str, list[Tensor]] = {name: [] for name in heads}
+        for start in range(0, n, per_chunk):
+            hidden = torch.relu(static_part[:, :, start : start + per_chunk] + time_part)
+            if self.trunk is not None:
+                hidden = torch.relu(self.trunk(hidden))
+            for name, head in heads.items():
+                outputs[name].append(head(hidden))  # (B, T, chunk, k)
+        raw = {
+            name: torch.cat(parts, 2)
+            if parts
+            else static.new_zeros(b, t, n, heads[name][-1].out_features)
+            for name, parts in outputs.items()
+        }
+        if self.preset == "paper":
+            mask = torch.sigmoid(self.mask_head(static)).squeeze(-1)  # (B, N)
+            return self._apply_paper(gaussians, raw, mask)
+        mask = torch.sigmoid(raw.pop("mask")).squeeze(-1)  # (B, T, N)
+        return self._apply_official(gaussians, raw, mask)
+
+    def _output(
+        self,
+        gaussians: GaussianSet,
+        deformed: dict[str, Tensor],
+        mask: Tensor,
+        deltas: DeformationDeltas,
+        raw: dict[str, Tensor],
+    ) -> DeformationOutput:
+        t = deltas.means.shape[1]
+        if gaussians.features is not None:
+            deformed["features"] = gaussians.features[:, None].expand(-1, t, -1, -1)
+        return DeformationOutput(
+            gaussians=GaussianSet(**deformed),
+            rigid_mask=mask,
+            deltas=deltas,
+            rigid_offsets=raw["rigid_offset"],
+            nonrigid_offsets=raw[
+                "rigid_offset" if self.preset == "official" else "nonrigid_offset"
+            ],
+            preset=self.preset,
+            loss_weights=self.loss_weights,
+        )
+
+    def _apply_paper(
+        self, gaussians: GaussianSet, raw: dict[str, Tensor], mask: Tensor
+    ) -> DeformationOutput:
+        m = mask[:, None, :, None]  # (B, 1, N, 1)
+        d_means = (1 - m) * raw["rigid_offset"] + m * raw["nonrigid_offset"]
+        d_quats = m * raw["rotation"]
+        d_scales = m * (MAX_LOG_SCALE_CHANGE * torch.tanh(raw["scale"] / MAX_LOG_SCALE_CHANGE))
+        d_opacities = (m * raw["opacity"]).squeeze(-1)
+        identity = torch.zeros_like(d_quats)
+        identity[..., 0] = 1
+        increment = _normalize(identity + d_quats)
+        canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
+        deformed = {
+            "means": canonical["means"] + d_means,
+            "quats": quaternion_multiply(canonical["quats"], increment),
+            "scales": canonical["scales"] * torch.exp(d_scales),
+            "opacities": shift_opacity_logit(canonical["opacities"], d_opacities),
+        }
+        deltas = DeformationDeltas(d_means, increment - identity, d_scales, d_opacities)
+        return self._output(gaussians, deformed, mask, deltas, raw)
+
+    def _apply_official(
+        self, gaussians: GaussianSet, raw: dict[str, Tensor], mask: Tensor
+    ) -> DeformationOutput:
+        m = mask[..., None]  # (B, T, N, 1)
+        canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
+        identity = torch.zeros_like(raw["rotation"])
+        identity[..., 0] = 1
+        blended = m * _normalize(raw["rotation"] + _OFFICIAL_QUAT_EPS) + (1 - m) * identity
+        deformed = {
+            "means": canonical["means"]
+            + raw["rigid_offset"].clamp(-_OFFICIAL_OFFSET_CLAMP, _OFFICIAL_OFFSET_CLAMP),
+            "quats": quaternion_multiply(canonical["quats"], blended),
+            "scales": canonical["scales"]
+            + m * raw["scale"].clamp(-_OFFICIAL_SCALE_CLAMP, _OFFICIAL_SCALE_CLAMP),
+            "opacities": (canonical["opacities"] + mask * raw["opacity"].squeeze(-1)).clamp(0, 1),
+        }
+        deltas = DeformationDeltas(
+            *(deformed[name] - canonical[name] for name in PARAMETERS)  # type: ignore[arg-type]
+        )
+        return self._output(gaussians, deformed, mask, deltas, raw)
+
+    def extra_repr(self) -> str:
+        return (
+            f"feature_dim={self.feature_dim}, preset={self.preset!r}, "
+            f"time_scale={self.time_scale}, pos_scale={self.pos_scale}"
+        )
+
+
+@typechecked
+def deformation_loss(
+    output: DeformationOutput, weights: DeformationLossWeights | None = None
+) -> dict[str, Tensor]:
+    """DeGO's deformation losses: ``{"reg", "mask", "total"}`` (scalars).
+
+    ``reg = sum_p lambda_p ||d_p||^2`` over the applied deltas, averaged (``paper``: mean
+    over (B, T, N) of the squared norm; ``official``: mean over every element);
+    ``mask = mean(m (1 - m))`` (``official``: the last time step's mask only);
+    ``total = weights.reg * reg + weights.mask * mask``. ``weights`` defaults to
+    ``output.loss_weights``.
+    """
+    weights = output.loss_weights if weights is None else weights
+    official = output.preset == "official"
+    reg = output.deltas.means.new_zeros(())
+    for name in PARAMETERS:
+        delta = getattr(output.deltas, name)
+        if official:
+            term = delta.square().mean()
+        else:
+            squared = delta.square()
+            term = (squared if name == "opacities" else squared.sum(-1)).mean()
+        reg = reg + getattr(weights, name) * term
+    m = output.rigid_mask[:, -1] if official else output.rigid_mask
+    mask = (m * (1 - m)).mean()
+    return {"reg": reg, "mask": mask, "total": weights.reg * reg + weights.mask * mask}
+
+
+__all__ = [
+    "MAX_LOG_SCALE_CHANGE",
+    "PARAMETERS",
+    "DecoupledDeformation",
+    "DeformationDeltas",
+    "DeformationLossWeights",
+    "DeformationOutput",
+    "deformation_loss",
+    "quaternion_multiply",
+    "shift_opacity_logit",
+]
