@@ -36,6 +36,14 @@ from dego.gaussians import (
 from dego.grid import VoxelGrid
 from dego.metrics import OccupancyMetrics, OccupancyReport, confusion_matrix, per_class_iou
 from dego.splatting import DifferentiableSplatter, SplatOutput, splat
+from dego.teacher import (
+    FactorizedSpatioTemporalTeacher,
+    FactorizedTeacherFeatures,
+    StudentProjector,
+    TeacherFeatureCache,
+    TeacherOutput,
+    distillation_loss,
+)
 from dego.voxelizer import GaussianVoxelizer, VoxelOutput, voxelize
 
 __all__ = [
@@ -53,6 +61,8 @@ __all__ = [
     "DeformationLossWeights",
     "DeformationOutput",
     "DifferentiableSplatter",
+    "FactorizedSpatioTemporalTeacher",
+    "FactorizedTeacherFeatures",
     "GaussianSet",
     "GaussianVoxelizer",
     "Occ3DLabel",
@@ -60,6 +70,9 @@ __all__ = [
     "OccupancyReport",
     "PositionalEncoding",
     "SplatOutput",
+    "StudentProjector",
+    "TeacherFeatureCache",
+    "TeacherOutput",
     "VoxelGrid",
     "VoxelOutput",
     "__version__",
@@ -67,6 +80,7 @@ __all__ = [
     "build_precisions",
     "confusion_matrix",
     "deformation_loss",
+    "distillation_loss",
     "normalize_quaternions",
     "per_class_iou",
     "positional_encoding",

@@ -1,0 +1,83 @@
+"""Student projector: per-Gaussian features C_g -> distillation space C_a, before splatting."""
+
+from __future__ import annotations
+
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from dego._typing import typechecked
+
+
+def _check_dim(name: str, value: object) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: expected an int >= 1, got {value!r}")
+    return value
+
+
+class StudentProjector(nn.Module):
+    """Maps per-Gaussian features ``(*batch, C_g)`` to ``(*batch, C_a)`` for rendering.
+
+    The projected features are splatted into the cameras and compared with the teacher
+    maps by :func:`~dego.teacher.loss.distillation_loss`. Projecting per Gaussian before
+    splatting (rather than per pixel after) keeps the render at C_a channels.
+
+    Args:
+        in_dim: C_g, the per-Gaussian feature width.
+        out_dim: C_a, the distillation width (32 in the paper).
+        hidden_dim: ``None`` (default) for a single ``Linear(C_g, C_a)``; an int for
+            ``Linear(C_g, hidden) -> LeakyReLU -> Linear(hidden, C_a)``. The official
+            student head is deeper, ``Linear(256, 512) -> LeakyReLU -> Linear(512, 512) ->
+            LeakyReLU -> Linear(512, 32)``; stack modules for that exact layout.
+        negative_slope: LeakyReLU slope of the hidden variant (torch's default 0.01).
+
+    Flatten extra axes (time, cameras) into the leading ``*batch`` axes; any number works.
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int = 32,
+        *,
+        hidden_dim: int | None = None,
+        negative_slope: float = 0.01,
+    ) -> None:
+        super().__init__()
+        self.in_dim = _check_dim("in_dim", in_dim)
+        self.out_dim = _check_dim("out_dim", out_dim)
+        self.hidden_dim = None if hidden_dim is None else _check_dim("hidden_dim", hidden_dim)
+        if isinstance(negative_slope, bool) or not isinstance(negative_slope, (int, float)):
+            raise ValueError(f"negative_slope: expected a float, got {negative_slope!r}")
+        if self.hidden_dim is None:
+            self.net: nn.Module = nn.Linear(in_dim, out_dim)
+        else:
+            self.net = nn.Sequential(
+                nn.Linear(in_dim, self.hidden_dim),
+                nn.LeakyReLU(float(negative_slope)),
+                nn.Linear(self.hidden_dim, out_dim),
+            )
+
+    @typechecked
+    def forward(self, features: Float[Tensor, "*batch C_g"]) -> Float[Tensor, "*batch C_a"]:
+        """Project ``(*batch, C_g)`` per-Gaussian features to ``(*batch, C_a)``."""
+        if features.shape[-1] != self.in_dim:
+            raise ValueError(
+                f"features: expected {self.in_dim} channels in the last axis, "
+                f"got shape {tuple(features.shape)}"
+            )
+        weight = next(self.parameters())
+        if features.dtype != weight.dtype:
+            raise TypeError(
+                f"features: dtype {features.dtype} differs from the projector's parameters "
+                f"({weight.dtype}); convert one of them with .to(dtype)"
+            )
+        if features.device != weight.device:
+            raise ValueError(
+                f"features: on device {features.device} but the projector is on {weight.device}"
+            )
+        return self.net(features)
+
+    def extra_repr(self) -> str:
+        return f"in_dim={self.in_dim}, out_dim={self.out_dim}, hidden_dim={self.hidden_dim}"
+
+
+__all__ = ["StudentProjector"]

@@ -1,0 +1,239 @@
+"""distillation_loss and StudentProjector: analytic values, invariances, masks, gradients, errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+from jaxtyping import TypeCheckError
+
+from dego.teacher.loss import DistillationLoss, cosine_distance_map, distillation_loss
+from dego.teacher.student import StudentProjector
+
+
+def _maps(*shape: int, dtype: torch.dtype = torch.float64, seed: int = 0) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    return torch.randn(*shape, generator=generator, dtype=dtype)
+
+
+# -- analytic cases -------------------------------------------------------------------
+def test_identical_orthogonal_opposite(dtype: torch.dtype, device: torch.device) -> None:
+    x = _maps(2, 3, 4, 5, 6, dtype=dtype).to(device)
+    tol = {"rtol": 0, "atol": 1e-6 if dtype == torch.float32 else 1e-14}
+    zero = torch.zeros((), dtype=dtype, device=device)
+    torch.testing.assert_close(distillation_loss(x, x), zero, **tol)
+    torch.testing.assert_close(distillation_loss(x, -x), zero + 2, **tol)
+    # e_0 vs e_1 at every pixel: orthogonal.
+    a = torch.zeros(1, 2, 3, 4, 5, dtype=dtype, device=device)
+    b = torch.zeros_like(a)
+    a[:, :, 0] = 1.0
+    b[:, :, 1] = 3.0
+    torch.testing.assert_close(distillation_loss(a, b), zero + 1, **tol)
+    out = distillation_loss(a, b)
+    assert out.shape == () and out.dtype == dtype and out.device.type == device.type
+
+
+def test_hand_computed_mean_of_mixed_pixels() -> None:
+    # Two pixels with 1 - cos = 0 and 1 - cos(60 degrees) = 0.5, one opposite pixel (2).
+    s = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    t = torch.tensor([[2.0, 0.0], [0.5, 0.75**0.5], [0.0, -1.0]], dtype=torch.float64)
+    student = s.T.reshape(1, 1, 2, 1, 3)
+    teacher = t.T.reshape(1, 1, 2, 1, 3)
+    expected = torch.tensor([0.0, 0.5, 2.0], dtype=torch.float64)
+    torch.testing.assert_close(
+        cosine_distance_map(student, teacher).flatten(), expected, rtol=0, atol=1e-15
+    )
+    torch.testing.assert_close(
+        distillation_loss(student, teacher), expected.mean(), rtol=0, atol=1e-15
+    )
+
+
+def test_zero_vectors_give_cosine_zero_and_finite_gradients() -> None:
+    student = torch.zeros(1, 1, 3, 2, 2, dtype=torch.float64, requires_grad=True)
+    teacher = _maps(1, 1, 3, 2, 2)
+    loss = distillation_loss(student, teacher)
+    assert loss.item() == 1.0
+    loss.backward()
+    assert student.grad is not None and torch.isfinite(student.grad).all()
+    both_zero = distillation_loss(torch.zeros(1, 1, 3, 2, 2), torch.zeros(1, 1, 3, 2, 2))
+    assert float(both_zero) == 1.0
+
+
+@given(
+    st.integers(0, 2**31 - 1),
+    st.floats(-3.0, 3.0),
+    st.booleans(),
+)
+def test_invariant_to_positive_per_pixel_scaling(
+    seed: int, log_scale: float, on_teacher: bool
+) -> None:
+    student = _maps(2, 2, 4, 3, 3, seed=seed)
+    teacher = _maps(2, 2, 4, 3, 3, seed=seed + 1)
+    generator = torch.Generator().manual_seed(seed)
+    # Per-pixel positive factors spanning 10^-3 .. 10^3 around exp(log_scale).
+    factors = torch.exp(
+        log_scale + 3 * torch.rand(2, 2, 1, 3, 3, generator=generator, dtype=torch.float64)
+    )
+    scaled = (student, teacher * factors) if on_teacher else (student * factors, teacher)
+    torch.testing.assert_close(
+        distillation_loss(*scaled), distillation_loss(student, teacher), rtol=0, atol=1e-12
+    )
+
+
+# -- masks ----------------------------------------------------------------------------
+def test_masked_out_pixels_do_not_matter_and_mean_is_over_valid(
+    dtype: torch.dtype, device: torch.device
+) -> None:
+    student = _maps(2, 3, 4, 5, 6, dtype=dtype).to(device)
+    teacher = _maps(2, 3, 4, 5, 6, dtype=dtype, seed=1).to(device)
+    mask = _maps(2, 3, 5, 6, seed=2).to(device) > 0.3
+    loss = distillation_loss(student, teacher, mask)
+    # Changing the masked-out pixels arbitrarily changes nothing.
+    noise = 100 * _maps(2, 3, 4, 5, 6, dtype=dtype, seed=3).to(device)
+    other = torch.where(mask.unsqueeze(2), teacher, noise)
+    torch.testing.assert_close(distillation_loss(student, other, mask), loss)
+    # Hand computation: 1 - cos at the valid pixels, averaged over their number.
+    s = student.movedim(2, -1)[mask]
+    t = teacher.movedim(2, -1)[mask]
+    cos = (s * t).sum(-1) / (s.norm(dim=-1) * t.norm(dim=-1))
+    torch.testing.assert_close(loss, (1 - cos).sum() / mask.sum())
+    # A uint8 0/1 mask means the same as the bool mask; an all-True mask is the plain mean.
+    torch.testing.assert_close(distillation_loss(student, teacher, mask.to(torch.uint8)), loss)
+    torch.testing.assert_close(
+        distillation_loss(student, teacher, torch.ones_like(mask)),
+        distillation_loss(student, teacher),
+    )
+
+
+def test_masked_out_nonfinite_pixels_do_not_leak() -> None:
+    student = _maps(1, 1, 2, 2, 2)
+    teacher = _maps(1, 1, 2, 2, 2, seed=1)
+    mask = torch.tensor([[[[True, False], [True, True]]]])
+    expected = distillation_loss(student, teacher, mask)
+    teacher[0, 0, :, 0, 1] = float("inf")
+    assert torch.equal(distillation_loss(student, teacher, mask), expected)
+
+
+def test_all_false_mask_gives_exact_zero_and_zero_gradient(device: torch.device) -> None:
+    student = _maps(1, 2, 3, 4, 4).to(device).requires_grad_(True)
+    teacher = _maps(1, 2, 3, 4, 4, seed=1).to(device).requires_grad_(True)
+    mask = torch.zeros(1, 2, 4, 4, dtype=torch.bool, device=device)
+    loss = distillation_loss(student, teacher, mask)
+    assert loss.item() == 0.0
+    loss.backward()
+    for grad in (student.grad, teacher.grad):
+        assert grad is not None and torch.equal(grad, torch.zeros_like(grad))
+
+
+def test_empty_maps_give_zero() -> None:
+    empty = torch.zeros(1, 2, 3, 0, 4)
+    assert float(distillation_loss(empty, empty)) == 0.0
+
+
+# -- gradients ------------------------------------------------------------------------
+def test_gradcheck_with_and_without_mask() -> None:
+    student = _maps(1, 2, 3, 2, 3).requires_grad_(True)
+    teacher = _maps(1, 2, 3, 2, 3, seed=1).requires_grad_(True)
+    mask = torch.tensor([[[[True, False, True], [False, True, True]]] * 2]).reshape(1, 2, 2, 3)
+    assert torch.autograd.gradcheck(distillation_loss, (student, teacher))
+    assert torch.autograd.gradcheck(lambda s, t: distillation_loss(s, t, mask), (student, teacher))
+
+
+def test_module_wrapper_matches_function() -> None:
+    student = _maps(1, 2, 3, 2, 3)
+    teacher = _maps(1, 2, 3, 2, 3, seed=1)
+    module = DistillationLoss(eps=1e-6)
+    assert torch.equal(module(student, teacher), distillation_loss(student, teacher, eps=1e-6))
+    assert "eps=1e-06" in repr(module)
+    assert len(module.state_dict()) == 0
+
+
+# -- bad inputs -----------------------------------------------------------------------
+def test_bad_inputs() -> None:
+    s = torch.randn(2, 3, 4, 5, 6)
+    t = torch.randn(2, 3, 4, 5, 6)
+    with pytest.raises(TypeCheckError, match="parameter 'teacher'"):
+        distillation_loss(s, t[:, :2])
+    with pytest.raises(TypeCheckError, match="parameter 'teacher'"):
+        distillation_loss(s, t[..., :5])
+    with pytest.raises(TypeCheckError, match="parameter 'student'"):
+        distillation_loss(s[0], t)
+    with pytest.raises(TypeCheckError, match="parameter 'student'"):
+        distillation_loss(s.long(), t)
+    with pytest.raises(TypeError, match=r"teacher: dtype torch.float64"):
+        distillation_loss(s, t.double())
+    with pytest.raises(TypeCheckError, match="parameter 'mask'"):
+        distillation_loss(s, t, torch.ones(2, 3, 5, 5, dtype=torch.bool))
+    with pytest.raises(TypeCheckError, match="parameter 'mask'"):
+        distillation_loss(s, t, torch.ones(2, 3, 5, 6))
+    with pytest.raises(ValueError, match="mask: a uint8 mask must hold only 0 and 1, found 2"):
+        distillation_loss(s, t, torch.full((2, 3, 5, 6), 2, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="student: expected at least one feature channel"):
+        distillation_loss(s[:, :, :0], t[:, :, :0])
+    for eps in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="eps: expected a float > 0"):
+            distillation_loss(s, t, eps=eps)
+    with pytest.raises(TypeCheckError, match="parameter 'eps'"):
+        distillation_loss(s, t, eps=True)
+    with pytest.raises(ValueError, match="eps"):
+        DistillationLoss(eps=0.0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")
+def test_device_mismatch() -> None:
+    s = torch.randn(1, 1, 2, 2, 2)
+    with pytest.raises(ValueError, match="teacher: on device"):
+        distillation_loss(s, s.cuda())
+    with pytest.raises(ValueError, match="mask: on device"):
+        distillation_loss(s, s, torch.ones(1, 1, 2, 2, dtype=torch.bool, device="cuda"))
+
+
+# -- StudentProjector -----------------------------------------------------------------
+def test_projector_shapes_and_layers(dtype: torch.dtype, device: torch.device) -> None:
+    linear = StudentProjector(16).to(device=device, dtype=dtype)
+    x = torch.randn(2, 7, 16, dtype=dtype, device=device)
+    out = linear(x)
+    assert out.shape == (2, 7, 32) and out.dtype == dtype and out.device.type == device.type
+    assert isinstance(linear.net, torch.nn.Linear)
+    assert linear(torch.randn(3, 2, 5, 16, dtype=dtype, device=device)).shape == (3, 2, 5, 32)
+    assert linear(torch.randn(16, dtype=dtype, device=device)).shape == (32,)
+    mlp = StudentProjector(16, 8, hidden_dim=24).to(device=device, dtype=dtype)
+    assert mlp(x).shape == (2, 7, 8)
+    layers = list(mlp.net)
+    assert [type(m) for m in layers] == [torch.nn.Linear, torch.nn.LeakyReLU, torch.nn.Linear]
+    assert (layers[0].in_features, layers[0].out_features, layers[2].out_features) == (16, 24, 8)
+    assert "hidden_dim=24" in repr(mlp)
+
+
+def test_projector_is_differentiable_and_matches_linear() -> None:
+    proj = StudentProjector(4, 3).double()
+    x = torch.randn(5, 4, dtype=torch.float64, requires_grad=True)
+    torch.testing.assert_close(proj(x), x @ proj.net.weight.T + proj.net.bias)
+    assert torch.autograd.gradcheck(proj, (x,))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"in_dim": 0}, "in_dim: expected an int >= 1"),
+        ({"in_dim": 4.0}, "in_dim: expected an int >= 1"),
+        ({"in_dim": True}, "in_dim: expected an int >= 1"),
+        ({"in_dim": 4, "out_dim": 0}, "out_dim: expected an int >= 1"),
+        ({"in_dim": 4, "hidden_dim": -2}, "hidden_dim: expected an int >= 1"),
+        ({"in_dim": 4, "hidden_dim": 8, "negative_slope": "x"}, "negative_slope"),
+    ],
+)
+def test_projector_bad_configuration(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        StudentProjector(**kwargs)
+
+
+def test_projector_bad_input() -> None:
+    proj = StudentProjector(4)
+    with pytest.raises(ValueError, match=r"features: expected 4 channels.*\(2, 3\)"):
+        proj(torch.randn(2, 3))
+    with pytest.raises(TypeError, match=r"features: dtype torch.float64"):
+        proj(torch.randn(2, 4, dtype=torch.float64))
+    with pytest.raises(TypeCheckError, match="parameter 'features'"):
+        proj(torch.ones(2, 4, dtype=torch.long))
