@@ -15,6 +15,7 @@ from torch import Tensor
 import dego
 import dego.voxelizer
 from dego import GaussianSet, GaussianVoxelizer, VoxelGrid, VoxelOutput, voxelize
+from dego.deformation import quaternion_multiply
 from tests.strategies import make_gaussian_set
 from tests.voxel_reference import (
     cube_mask,
@@ -107,21 +108,6 @@ def single_gaussian(
         scales=t(scales),
         opacities=torch.tensor([[opacity]], dtype=dtype),
         features=None if features is None else t(features),
-    )
-
-
-def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product of wxyz quaternions (rotation ``a`` after ``b``)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
     )
 
 
@@ -426,7 +412,7 @@ def test_single_gaussian_at_a_voxel_centre_gives_its_opacity_there(
     mode: str, neighborhood: str, opacity: float
 ) -> None:
     # centre of voxel (9, 6, 5) of GRID; a rotated anisotropic Gaussian
-    quat = tuple(quat_multiply(axis_quat(2, 30.0), axis_quat(0, 70.0)).tolist())
+    quat = tuple(quaternion_multiply(axis_quat(2, 30.0), axis_quat(0, 70.0)).tolist())
     gs = single_gaussian(
         (0.375, -0.375, 0.375), quat=quat, scales=(0.2, 0.5, 0.1), opacity=opacity,
         features=(0.5, -2.0, 3.0),
@@ -471,7 +457,7 @@ def test_rotated_needle_reaches_every_voxel_inside_its_cutoff_ellipsoid(
     cutoff_sigma: float,
 ) -> None:
     grid = VoxelGrid((-2.0, -2.0, -2.0), (2.0, 2.0, 2.0), 0.125)  # (32, 32, 32)
-    quat = quat_multiply(axis_quat(2, 45.0), axis_quat(0, 45.0))
+    quat = quaternion_multiply(axis_quat(2, 45.0), axis_quat(0, 45.0))
     gs = single_gaussian(
         (0.03, -0.02, 0.05), quat=tuple(quat.tolist()), scales=(0.05, 0.05, 2.0), opacity=1.0
     )

@@ -16,6 +16,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from dego._checks import check_int, check_positive
 from dego._typing import typechecked
 from dego.encoding import positional_encoding
 from dego.gaussians import GaussianSet, _normalize
@@ -241,16 +242,14 @@ class DecoupledDeformation(nn.Module):
             ("head_hidden", head_hidden, 1),
             ("chunk_rows", 1 if chunk_rows is None else chunk_rows, 1),
         ]:
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
+            check_int(name, value, low)
         if preset not in ("paper", "official"):
             raise ValueError(f"preset: expected 'paper' or 'official', got {preset!r}")
         if pos_scale is None:
             grid = VoxelGrid.occ3d()
             pos_scale = max(map(abs, (*grid.lower, *grid.upper))) if preset == "paper" else 1.0
-        for name, value in [("time_scale", time_scale), ("pos_scale", pos_scale)]:
-            if not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+        check_positive("time_scale", time_scale)
+        check_positive("pos_scale", pos_scale)
         if loss_weights is not None and not isinstance(loss_weights, DeformationLossWeights):
             raise TypeError(
                 f"loss_weights: expected DeformationLossWeights, got {type(loss_weights).__name__}"

@@ -14,13 +14,13 @@ patch size works without an image-size argument.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from dego._checks import check_int, check_positive
 from dego._typing import typechecked
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -137,16 +137,14 @@ class FactorizedSpatioTemporalTeacher(nn.Module):
             ("patch_size", patch_size, 1),
             ("num_register_tokens", num_register_tokens, 0),
         ]:
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
+            check_int(name, value, low)
         if embed_dim % num_heads or (embed_dim // num_heads) % 4:
             raise ValueError(
                 f"num_heads: embed_dim / num_heads must be a whole multiple of 4 for 2-D RoPE, "
                 f"got embed_dim={embed_dim}, num_heads={num_heads}"
             )
-        for name, value in [("mlp_ratio", mlp_ratio), ("rope_base", rope_base)]:
-            if not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+        check_positive("mlp_ratio", mlp_ratio)
+        check_positive("rope_base", rope_base)
         self.embed_dim, self.patch_size, self.normalize = embed_dim, patch_size, normalize
         self.patch_start_idx = 1 + num_register_tokens
         self.patch_embed = nn.Conv2d(3, embed_dim, patch_size, stride=patch_size)

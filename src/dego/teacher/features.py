@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from dego._checks import check_int
 from dego._typing import typechecked
 from dego.teacher.factorized import TeacherOutput
 
@@ -62,11 +63,9 @@ class FactorizedTeacherFeatures(nn.Module):
             ("out_dim", out_dim, 1),
             ("patch_start_idx", patch_start_idx, 0),
         ]:
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
-        for name, value in [("layer", layer), ("reference_time", reference_time)]:
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"{name}: expected an int index, got {value!r}")
+            check_int(name, value, low)
+        check_int("layer", layer)
+        check_int("reference_time", reference_time)
         if projector not in ("frozen", "trainable"):
             raise ValueError(f"projector: expected 'frozen' or 'trainable', got {projector!r}")
         self.in_dim, self.out_dim = in_dim, out_dim

@@ -5,13 +5,8 @@ from __future__ import annotations
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from dego._checks import check_int
 from dego._typing import typechecked
-
-
-def _check_dim(name: str, value: object) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name}: expected an int >= 1, got {value!r}")
-    return value
 
 
 class StudentProjector(nn.Module):
@@ -42,9 +37,9 @@ class StudentProjector(nn.Module):
         negative_slope: float = 0.01,
     ) -> None:
         super().__init__()
-        self.in_dim = _check_dim("in_dim", in_dim)
-        self.out_dim = _check_dim("out_dim", out_dim)
-        self.hidden_dim = None if hidden_dim is None else _check_dim("hidden_dim", hidden_dim)
+        self.in_dim = check_int("in_dim", in_dim, 1)
+        self.out_dim = check_int("out_dim", out_dim, 1)
+        self.hidden_dim = None if hidden_dim is None else check_int("hidden_dim", hidden_dim, 1)
         if isinstance(negative_slope, bool) or not isinstance(negative_slope, (int, float)):
             raise ValueError(f"negative_slope: expected a float, got {negative_slope!r}")
         if self.hidden_dim is None:
