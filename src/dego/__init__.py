@@ -34,7 +34,16 @@ from dego.gaussians import (
     quaternions_to_rotation_matrices,
 )
 from dego.grid import VoxelGrid
-from dego.metrics import OccupancyMetrics, OccupancyReport, confusion_matrix, per_class_iou
+from dego.metrics import (
+    OccupancyMetrics,
+    OccupancyReport,
+    RayIoU,
+    RayIoUReport,
+    confusion_matrix,
+    lidar_origins,
+    per_class_iou,
+)
+from dego.raycast import cast_rays, generate_lidar_rays
 from dego.splatting import DifferentiableSplatter, SplatOutput, splat
 from dego.teacher import (
     FactorizedSpatioTemporalTeacher,
@@ -69,6 +78,8 @@ __all__ = [
     "OccupancyMetrics",
     "OccupancyReport",
     "PositionalEncoding",
+    "RayIoU",
+    "RayIoUReport",
     "SplatOutput",
     "StudentProjector",
     "TeacherFeatureCache",
@@ -78,9 +89,12 @@ __all__ = [
     "__version__",
     "build_covariances",
     "build_precisions",
+    "cast_rays",
     "confusion_matrix",
     "deformation_loss",
     "distillation_loss",
+    "generate_lidar_rays",
+    "lidar_origins",
     "normalize_quaternions",
     "per_class_iou",
     "positional_encoding",

@@ -1,0 +1,349 @@
+"""RayIoU (SparseOcc): ray-based occupancy IoU at 1, 2 and 4 m, in pure torch.
+
+LiDAR-like rays are cast from up to 8 origins through the predicted and the ground-truth
+label grids (:func:`dego.raycast.cast_rays`). Only rays whose ground-truth hit is not
+free are scored: a ray is a true positive for class c at threshold t when both hits
+have label c and ``|d_pred - d_gt| < t`` (strict). Counts are pooled over the data set:
+``IoU[t, c] = tp / (gt_cnt + pred_cnt - tp)``, RayIoU@t is the nanmean over the 17
+non-free classes, RayIoU the mean over thresholds. Every rule is SparseOcc's
+(``reference/metrics-protocol-facts.md`` section 3).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from dego._typing import typechecked
+from dego.classes import CLASS_NAMES, FREE_LABEL, NUM_CLASSES
+from dego.gaussians import _rotation_matrices
+from dego.grid import VoxelGrid
+from dego.raycast import cast_rays, generate_lidar_rays
+
+DEFAULT_THRESHOLDS = (1.0, 2.0, 4.0)
+
+
+def _pose_matrix(pose: Tensor) -> Tensor:
+    """``(F, 4, 4)`` float64 from ``(F, 4, 4)`` matrices or ``(F, 7)`` translation + wxyz."""
+    pose = pose.double()
+    if pose.ndim == 3 and pose.shape[-2:] == (4, 4):
+        return pose
+    if pose.ndim == 2 and pose.shape[-1] == 7:
+        matrix = torch.eye(4, dtype=torch.float64).repeat(pose.shape[0], 1, 1)
+        matrix[:, :3, :3] = _rotation_matrices(pose[:, 3:])
+        matrix[:, :3, 3] = pose[:, :3]
+        return matrix
+    raise ValueError(
+        f"poses: expected (F, 4, 4) matrices or (F, 7) translation + wxyz, got {tuple(pose.shape)}"
+    )
+
+
+@typechecked
+def lidar_origins(
+    ego2global: Tensor,
+    lidar2ego: Tensor,
+    reference_index: int,
+    max_origins: int = 8,
+    xy_limit: float = 39.0,
+) -> Float[Tensor, "K 3"]:
+    """RayIoU ray origins in the reference frame's ego coordinates (SparseOcc's rule).
+
+    Every frame's LiDAR position, ``inv(G_ref L_ref) G_f L_f`` (G = ego2global, L =
+    lidar2ego), is taken to the reference LiDAR frame and then to the reference ego frame
+    with ``L_ref``; origins with ``|x| < xy_limit`` and ``|y| < xy_limit`` are kept (no z
+    check), and if more than ``max_origins`` remain, those at indices
+    ``round(linspace(0, n - 1, max_origins))``.
+
+    Args:
+        ego2global, lidar2ego: per-frame poses of the scene's keyframes in temporal order,
+            ``(F, 4, 4)`` or ``(F, 7)`` (translation, then wxyz quaternion).
+        reference_index: the evaluated frame.
+
+    Returns:
+        ``(K, 3)`` float64 origins, K <= ``max_origins``.
+    """
+    g, lid = _pose_matrix(ego2global), _pose_matrix(lidar2ego)
+    frames = g.shape[0]
+    if lid.shape[0] != frames:
+        raise ValueError(f"lidar2ego: {lid.shape[0]} frames, ego2global has {frames}")
+    if not -frames <= reference_index < frames:
+        raise IndexError(f"reference_index: {reference_index} is out of range for {frames}")
+    if max_origins < 1:
+        raise ValueError(f"max_origins: expected an int >= 1, got {max_origins}")
+    ref = reference_index % frames
+    sensor = g @ lid  # (F, 4, 4) lidar -> global
+    in_ref_lidar = torch.linalg.inv(sensor[ref]) @ sensor  # lidar_f -> lidar_ref
+    origins = (lid[ref] @ in_ref_lidar)[:, :3, 3]  # lidar_f origin in the reference ego frame
+    keep = (origins[:, 0].abs() < xy_limit) & (origins[:, 1].abs() < xy_limit)
+    origins = origins[keep]
+    if origins.shape[0] > max_origins:
+        picked = np.round(np.linspace(0, origins.shape[0] - 1, max_origins)).astype(np.int64)
+        origins = origins[torch.from_numpy(picked)]
+    return origins
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RayIoUReport:
+    """RayIoU scores (fractions; NaN for classes absent from gt and predictions).
+
+    Attributes:
+        thresholds: the distance thresholds in metres.
+        per_class: ``(len(thresholds), C)`` float64 IoU of every label (free included, NaN).
+        at: RayIoU per threshold (nanmean over ``class_ids``).
+        rayiou: mean of ``at`` (SparseOcc's nanmean over the whole array).
+        class_ids: the classes averaged. class_names: names of all C labels.
+    """
+
+    thresholds: tuple[float, ...]
+    per_class: Tensor
+    at: tuple[float, ...]
+    rayiou: float
+    class_ids: tuple[int, ...]
+    class_names: tuple[str, ...]
+
+    def as_dict(self) -> dict[str, float]:
+        """``{"rayiou", "rayiou@<t>", "rayiou@<t>/<class>"}`` for loggers."""
+        out = {"rayiou": self.rayiou}
+        for i, t in enumerate(self.thresholds):
+            out[f"rayiou@{t:g}"] = self.at[i]
+            for c in self.class_ids:
+                out[f"rayiou@{t:g}/{self.class_names[c]}"] = float(self.per_class[i, c])
+        return out
+
+    def table(self) -> str:
+        """A text table of per-class IoU at every threshold and the means (fractions, .3)."""
+        head = " | ".join(f"{'IoU@' + format(t, 'g'):>7}" for t in self.thresholds)
+        lines = [
+            f"| {'class':<22} | {head} |",
+            f"|{'-' * 24}|" + "|".join("-" * 9 for _ in self.thresholds) + "|",
+        ]
+        for c in self.class_ids:
+            values = " | ".join(
+                _fmt(float(self.per_class[i, c])) for i in range(len(self.thresholds))
+            )
+            lines.append(f"| {self.class_names[c]:<22} | {values} |")
+        means = " | ".join(_fmt(v) for v in self.at)
+        lines.append(f"| {'MEAN':<22} | {means} |")
+        lines.append(f"RayIoU {_fmt(self.rayiou).strip()}")
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.table()
+
+
+def _fmt(value: float) -> str:
+    return f"{'-':>7}" if math.isnan(value) else f"{value:>7.3f}"
+
+
+def _nanmean(values: Tensor) -> float:
+    finite = values[~values.isnan()]
+    return float(finite.mean()) if finite.numel() else math.nan
+
+
+class RayIoU(nn.Module):
+    """Data-set RayIoU with a torchmetrics-style ``update / compute / reset / merge / sync``.
+
+    Args:
+        thresholds: distance thresholds in metres (SparseOcc: 1, 2, 4).
+        num_classes: C, labels including free (18).
+        free_label: the empty label (17).
+        class_ids: the classes averaged into RayIoU (default: every label but free, i.e.
+            the 17 classes SparseOcc averages, others and other_flat included).
+        grid: the label grids' voxel grid (default Occ3D).
+        rays: ``(R, 3)`` ray directions (default :func:`dego.raycast.generate_lidar_rays`).
+        device: where the state lives.
+
+    State (int64 buffers): ``gt_count (C,)``, ``pred_count (C,)``, ``true_positives
+    (len(thresholds), C)``, pooled over every scored ray.
+    """
+
+    gt_count: Tensor
+    pred_count: Tensor
+    true_positives: Tensor
+
+    def __init__(
+        self,
+        thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
+        num_classes: int = NUM_CLASSES,
+        free_label: int = FREE_LABEL,
+        class_ids: Sequence[int] | None = None,
+        grid: VoxelGrid | None = None,
+        rays: Tensor | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        thresholds = tuple(float(t) for t in thresholds)
+        if not thresholds or any(not math.isfinite(t) or t <= 0 for t in thresholds):
+            raise ValueError(f"thresholds: expected positive distances, got {thresholds!r}")
+        if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 2:
+            raise ValueError(f"num_classes: expected an int >= 2, got {num_classes!r}")
+        if not 0 <= free_label < num_classes:
+            raise ValueError(f"free_label: {free_label} must lie in 0..{num_classes - 1}")
+        if class_ids is None:
+            class_ids = [c for c in range(num_classes) if c != free_label]
+        class_ids = tuple(int(c) for c in class_ids)
+        if not class_ids or any(not 0 <= c < num_classes or c == free_label for c in class_ids):
+            raise ValueError(
+                f"class_ids: expected non-free ids in 0..{num_classes - 1}, got {class_ids!r}"
+            )
+        self.thresholds, self.num_classes, self.free_label = thresholds, num_classes, free_label
+        self.class_ids = class_ids
+        self.grid = VoxelGrid.occ3d() if grid is None else grid
+        if rays is None:
+            rays = generate_lidar_rays()
+        if rays.ndim != 2 or rays.shape[-1] != 3 or rays.shape[0] == 0:
+            raise ValueError(f"rays: expected (R, 3) directions, got {tuple(rays.shape)}")
+        self.register_buffer("rays", rays.float(), persistent=False)
+        kw = {"dtype": torch.int64, "device": device}
+        self.register_buffer("gt_count", torch.zeros(num_classes, **kw))
+        self.register_buffer("pred_count", torch.zeros(num_classes, **kw))
+        self.register_buffer("true_positives", torch.zeros(len(thresholds), num_classes, **kw))
+        self._synced: tuple[Tensor, Tensor, Tensor] | None = None
+
+    def _check_labels(self, name: str, labels: Tensor | np.ndarray) -> Tensor:
+        if isinstance(labels, np.ndarray):
+            labels = torch.from_numpy(np.ascontiguousarray(labels))
+        if not isinstance(labels, Tensor) or labels.is_floating_point() or labels.is_complex():
+            raise TypeError(f"{name}: expected an integer label grid, got {type(labels).__name__}")
+        if tuple(labels.shape) != self.grid.shape:
+            raise ValueError(
+                f"{name}: expected shape {self.grid.shape} (the grid), got {tuple(labels.shape)}"
+            )
+        labels = labels.long()
+        if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= self.num_classes):
+            raise ValueError(
+                f"{name}: labels must lie in 0..{self.num_classes - 1}, found "
+                f"{int(labels.min())}..{int(labels.max())}"
+            )
+        return labels
+
+    @typechecked
+    def update(
+        self,
+        pred: Tensor | np.ndarray,
+        gt: Tensor | np.ndarray,
+        origins: Tensor | np.ndarray,
+    ) -> None:
+        """Cast and score one sample.
+
+        Args:
+            pred, gt: ``(X, Y, Z)`` integer label grids in ``0..C-1`` on the metric's grid.
+            origins: ``(K, 3)`` ray origins in metres (ego frame; :func:`lidar_origins`);
+                K >= 1. Origins outside the grid are allowed (their rays may never enter).
+        """
+        pred, gt = self._check_labels("pred", pred), self._check_labels("gt", gt)
+        if isinstance(origins, np.ndarray):
+            origins = torch.from_numpy(origins)
+        if origins.ndim != 2 or origins.shape[-1] != 3:
+            raise ValueError(f"origins: expected (K, 3), got {tuple(origins.shape)}")
+        if origins.shape[0] == 0:
+            raise ValueError("origins: need at least one origin, got K = 0")
+        device = gt.device
+        pred = pred.to(device)
+        origins, rays = origins.to(device), self.rays.to(device)
+        gt_distance, gt_label = cast_rays(gt, origins, rays, self.grid, self.free_label)
+        pred_distance, pred_label = cast_rays(pred, origins, rays, self.grid, self.free_label)
+        scored = gt_label != self.free_label
+        gt_label, pred_label = gt_label[scored], pred_label[scored]
+        error = (pred_distance[scored] - gt_distance[scored]).abs()
+        c = self.num_classes
+        agree = gt_label == pred_label
+        thresholds = torch.tensor(self.thresholds, dtype=error.dtype, device=device)
+        close = error[None] < thresholds[:, None]  # (thresholds, rays)
+        tp = torch.stack([torch.bincount(gt_label[agree & row], minlength=c) for row in close]).to(
+            self.true_positives.device
+        )
+        self.gt_count += torch.bincount(gt_label, minlength=c).to(self.gt_count.device)
+        self.pred_count += torch.bincount(pred_label, minlength=c).to(self.pred_count.device)
+        self.true_positives += tp
+        self._synced = None
+
+    def merge(self, other: RayIoU) -> RayIoU:
+        """Add another instance's counts (same configuration); returns ``self``."""
+        if not isinstance(other, RayIoU):
+            raise TypeError(f"other: expected RayIoU, got {type(other).__name__}")
+        if other._config() != self._config():
+            raise ValueError(
+                f"other: configuration {other._config()} differs from {self._config()}"
+            )
+        for name in ("gt_count", "pred_count", "true_positives"):
+            getattr(self, name).add_(getattr(other, name).to(getattr(self, name).device))
+        self._synced = None
+        return self
+
+    def reset(self) -> None:
+        """Zero the counts."""
+        for t in (self.gt_count, self.pred_count, self.true_positives):
+            t.zero_()
+        self._synced = None
+
+    def sync(self, process_group: Any = None) -> RayIoU:
+        """All-reduce (sum) the int64 counts over the ranks of ``process_group``; returns
+        ``self``. A no-op without torch.distributed; idempotent (local counts are kept)."""
+        if not (dist.is_available() and dist.is_initialized()):
+            return self
+        parts = (self.gt_count, self.pred_count, self.true_positives.reshape(-1))
+        state = torch.cat(parts)
+        if dist.get_backend(process_group) == "nccl" and state.device.type != "cuda":
+            state = state.to(torch.device("cuda", torch.cuda.current_device()))
+        dist.all_reduce(state, op=dist.ReduceOp.SUM, group=process_group)
+        state = state.to(self.gt_count.device)
+        c = self.num_classes
+        self._synced = (state[:c], state[c : 2 * c], state[2 * c :].view(-1, c))
+        return self
+
+    def compute(self) -> RayIoUReport:
+        """IoU per threshold and class, RayIoU@t and RayIoU of everything seen."""
+        gt, pred, tp = self._synced or (self.gt_count, self.pred_count, self.true_positives)
+        if int(gt.sum()) == 0:
+            raise RuntimeError("compute: no scored ray yet (every gt ray hit free space?)")
+        per_class = tp.double() / (gt + pred - tp).double()  # (thresholds, C)
+        per_class = per_class.cpu()
+        ids = list(self.class_ids)
+        at = tuple(_nanmean(row[ids]) for row in per_class)
+        names = (
+            CLASS_NAMES
+            if self.num_classes == NUM_CLASSES
+            else tuple(f"class_{i}" for i in range(self.num_classes))
+        )
+        return RayIoUReport(
+            thresholds=self.thresholds,
+            per_class=per_class,
+            at=at,
+            rayiou=_nanmean(per_class[:, ids].reshape(-1)),
+            class_ids=self.class_ids,
+            class_names=tuple(names),
+        )
+
+    def _config(self) -> dict[str, Any]:
+        return {
+            "thresholds": list(self.thresholds),
+            "num_classes": self.num_classes,
+            "free_label": self.free_label,
+            "class_ids": list(self.class_ids),
+            "grid": (self.grid.lower, self.grid.upper, self.grid.voxel_size),
+        }
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return self._config()
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        if state != self._config():
+            raise ValueError(
+                f"state_dict: saved configuration {state} differs from {self._config()}"
+            )
+        self._synced = None
+
+    def extra_repr(self) -> str:
+        return f"thresholds={self.thresholds}, num_classes={self.num_classes}"
+
+
+__all__ = ["DEFAULT_THRESHOLDS", "RayIoU", "RayIoUReport", "lidar_origins"]
