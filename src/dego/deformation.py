@@ -142,17 +142,20 @@ def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
 
 
 def shift_opacity_logit(opacity: Tensor, shift: Tensor) -> Tensor:
-    """``sigmoid(logit(o) + shift)`` for o in [0, 1], exact where ``shift`` is 0.
+    """``sigmoid(logit(o) + d)`` for o in [0, 1], exact where ``d`` is 0, always in [0, 1].
 
-    Written as ``o + sign(d) (1 - p) p u / (1 + p u)`` with ``u = expm1(|d|)`` and
-    ``p = o`` (d >= 0) or ``1 - o`` (d < 0): no logit of 0 or 1 is ever taken, so
-    o = 0 (padding) and o = 1 stay fixed with finite gradients.
+    Raising (d >= 0): ``o + (1 - o) o u / (1 + o u)`` with ``u = expm1(d)``, which is o
+    itself at d = 0. Lowering (d < 0): ``o e^d / ((1 - o) + o e^d)``, a ratio of positive
+    terms. No logit of 0 or 1 is taken and nothing cancels, so o = 0 (padding) and o = 1
+    stay fixed with finite gradients; |d| is clamped to 50, where the result is 0 or 1.
     """
-    grow = shift >= 0
-    u = torch.expm1(shift.abs().clamp(max=_MAX_LOGIT_SHIFT))
-    p = torch.where(grow, opacity, 1 - opacity)
-    step = (1 - p) * (p * u / (1 + p * u))
-    return opacity + torch.where(grow, step, -step)
+    d = shift.clamp(-_MAX_LOGIT_SHIFT, _MAX_LOGIT_SHIFT)
+    # each branch sees only its own half of d, so neither can produce NaN gradients
+    u = torch.expm1(d.clamp_min(0))
+    raised = opacity + (1 - opacity) * (opacity * u / (1 + opacity * u))
+    scaled = opacity * torch.exp(d.clamp_max(0))
+    lowered = scaled / ((1 - opacity) + scaled)
+    return torch.where(d >= 0, raised.clamp_max(1), lowered)
 
 
 class DecoupledDeformation(nn.Module):
@@ -302,6 +305,8 @@ class DecoupledDeformation(nn.Module):
     def _normalized_times(self, times: Tensor, batch: int) -> Tensor:
         if not bool(torch.isfinite(times).all()):
             raise ValueError("times: expected finite values, got NaN or inf")
+        if times.shape[-1] == 0:
+            raise ValueError("times: expected at least one time step, got T = 0")
         if times.ndim == 1:
             times = times.expand(batch, -1)
         elif times.shape[0] != batch:
@@ -348,6 +353,12 @@ class DecoupledDeformation(nn.Module):
                     f"{name}: expected {gaussians.dtype} on {gaussians.device} like gaussians, "
                     f"got {value.dtype} on {value.device}"
                 )
+        weight = self.input_static.weight
+        if gaussians.dtype != weight.dtype or gaussians.device != weight.device:
+            raise ValueError(
+                f"gaussians: {gaussians.dtype} on {gaussians.device}, but the module's "
+                f"parameters are {weight.dtype} on {weight.device}; move one with .to()"
+            )
         times = self._normalized_times(times, b)  # (B, T)
 
         static = torch.cat(
@@ -455,6 +466,11 @@ class DecoupledDeformation(nn.Module):
         )
 
 
+def _mean(values: Tensor) -> Tensor:
+    """Mean that is 0 (not NaN) over no elements, e.g. N = 0 padding-only batches."""
+    return values.sum() / max(values.numel(), 1)
+
+
 @typechecked
 def deformation_loss(
     output: DeformationOutput, weights: DeformationLossWeights | None = None
@@ -473,13 +489,13 @@ def deformation_loss(
     for name in PARAMETERS:
         delta = getattr(output.deltas, name)
         if official:
-            term = delta.square().mean()
+            term = _mean(delta.square())
         else:
             squared = delta.square()
-            term = (squared if name == "opacities" else squared.sum(-1)).mean()
+            term = _mean(squared if name == "opacities" else squared.sum(-1))
         reg = reg + getattr(weights, name) * term
     m = output.rigid_mask[:, -1] if official else output.rigid_mask
-    mask = (m * (1 - m)).mean()
+    mask = _mean(m * (1 - m))
     return {"reg": reg, "mask": mask, "total": weights.reg * reg + weights.mask * mask}
 
 
