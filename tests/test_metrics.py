@@ -416,3 +416,13 @@ def test_other_label_sets_use_occ3d_protocol() -> None:
     report = metrics.compute()
     assert report.miou == 1.0 and report.iou == 1.0 and len(report.evaluated_classes) == 23
     assert dict(report.group_means) == {}
+
+
+def test_a_refused_state_dict_leaves_the_counts_untouched() -> None:
+    weak, occ3d = OccupancyMetrics("weak"), OccupancyMetrics("occ3d")
+    weak.update(*random_sample(0))
+    occ3d.update(*random_sample(1))
+    before = occ3d.confusion.clone(), occ3d.geometric.clone()
+    with pytest.raises(ValueError, match="configuration"):
+        occ3d.load_state_dict(weak.state_dict())
+    assert torch.equal(occ3d.confusion, before[0]) and torch.equal(occ3d.geometric, before[1])

@@ -3,8 +3,10 @@
 The rules are those of the DVR kernel behind SparseOcc's RayIoU
 (``reference/metrics-protocol-facts.md`` section 3), so that RayIoU numbers match:
 
-- positions are taken to voxel units as ``float32((p - lower) / voxel_size)``; the ray's
-  end point is ``origin + direction`` (float32) and only its direction matters;
+- positions are taken to voxel units as ``float32((p - lower) / voxel_size)``, computed in
+  float64 from float64 origins, float32 directions and the float32 grid bounds and voxel
+  size, rounded once; the ray's end point is ``origin + direction`` and only its
+  direction matters;
 - traversal state is float64; it starts in voxel ``trunc(origin)`` (truncation toward
   zero, also for origins outside the grid) and includes that voxel;
 - ``step = +1 if d >= 0 else -1``; ``tMax = (next boundary - o) / d`` (``inf`` where
@@ -110,15 +112,17 @@ def cast_rays(
     lower = torch.tensor(grid.lower, dtype=torch.float32, device=device)
     size = torch.tensor(grid.voxel_size, dtype=torch.float32, device=device)
     shape = torch.tensor(grid.shape, device=device)
-    o32 = origins.to(device=device, dtype=torch.float32)
-    d32 = directions.to(device=device, dtype=torch.float32)
-    if not bool(torch.isfinite(o32).all()):
+    o64 = origins.to(device=device, dtype=torch.float64)
+    d64 = directions.to(device=device, dtype=torch.float32).double()
+    if not bool(torch.isfinite(o64).all()):
         raise ValueError("origins: expected finite values")
-    if not bool(torch.isfinite(d32).all()) or bool((d32 == 0).all(-1).any()):
+    if not bool(torch.isfinite(d64).all()) or bool((d64 == 0).all(-1).any()):
         raise ValueError("directions: expected finite, non-zero vectors")
-    k, r = o32.shape[0], d32.shape[0]
-    start = ((o32 - lower) / size).double()  # (K, 3), voxel units, float32-rounded
-    end = (((o32[:, None] + d32[None]) - lower) / size).double()  # (K, R, 3)
+    k, r = o64.shape[0], d64.shape[0]
+    lower64, size64 = lower.double(), size.double()
+    # voxel units computed in float64 and rounded to float32 once, as the reference does
+    start = ((o64 - lower64) / size64).float().double()  # (K, 3)
+    end = (((d64[None] + o64[:, None]) - lower64) / size64).float().double()  # (K, R, 3)
     delta = end - start[:, None]
     length = torch.linalg.vector_norm(delta, dim=-1, keepdim=True)
     unit = (delta / length).reshape(-1, 3)  # (K R, 3)

@@ -7,19 +7,19 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.distributed as dist
-from torch import Tensor, nn
+from torch import Tensor
 
 from dego._typing import typechecked
 from dego.classes import CLASS_GROUPS, CLASS_NAMES, FREE_LABEL, NUM_CLASSES, PROTOCOL_CLASSES
 from dego.metrics.confusion import binary_occupancy_confusion, confusion_matrix
+from dego.metrics.counts import CountingMetric
 from dego.metrics.report import OccupancyReport, per_class_iou
 
 WEAK_REMOVED_CLASSES = (0, 12)
 """GT classes whose voxels the weakly supervised protocol removes (others, other_flat)."""
 
 
-class OccupancyMetrics(nn.Module):
+class OccupancyMetrics(CountingMetric):
     """Pooled voxel IoU metrics with a torchmetrics-style ``update / compute / reset / sync``.
 
     Args:
@@ -41,6 +41,7 @@ class OccupancyMetrics(nn.Module):
     voxel seen, never averaged per sample.
     """
 
+    COUNTS = ("confusion", "geometric")
     confusion: Tensor
     geometric: Tensor
 
@@ -93,7 +94,6 @@ class OccupancyMetrics(nn.Module):
         kw = {"dtype": torch.int64, "device": device}
         self.register_buffer("confusion", torch.zeros(num_classes, num_classes, **kw))
         self.register_buffer("geometric", torch.zeros(2, 2, **kw))
-        self._synced: tuple[Tensor, Tensor] | None = None
 
     # -- accumulation -----------------------------------------------------------------
     @typechecked
@@ -124,49 +124,12 @@ class OccupancyMetrics(nn.Module):
         ).to(self.confusion.device)
         self.confusion += confusion
         self.geometric += binary_occupancy_confusion(confusion, self.free_label)
-        self._synced = None
-
-    def merge(self, other: OccupancyMetrics) -> OccupancyMetrics:
-        """Add another instance's state into this one (same configuration); returns ``self``."""
-        if not isinstance(other, OccupancyMetrics):
-            raise TypeError(f"other: expected OccupancyMetrics, got {type(other).__name__}")
-        if other._config() != self._config():
-            raise ValueError(
-                f"other: configuration {other._config()} differs from {self._config()}"
-            )
-        self.confusion += other.confusion.to(self.confusion.device)
-        self.geometric += other.geometric.to(self.geometric.device)
-        self._synced = None
-        return self
-
-    def reset(self) -> None:
-        """Zero the state."""
-        self.confusion.zero_()
-        self.geometric.zero_()
-        self._synced = None
-
-    def sync(self, process_group: Any = None) -> OccupancyMetrics:
-        """All-reduce (sum) the state over the ranks of ``process_group``; returns ``self``.
-
-        A no-op when torch.distributed is not initialised. The local state is kept, so
-        ``sync`` can be called again safely; ``compute`` uses the synced totals until the
-        next ``update``, ``merge``, ``reset`` or ``load_state_dict``.
-        """
-        if not (dist.is_available() and dist.is_initialized()):
-            return self
-        state = torch.cat([self.confusion.reshape(-1), self.geometric.reshape(-1)])
-        if dist.get_backend(process_group) == "nccl" and state.device.type != "cuda":
-            state = state.to(torch.device("cuda", torch.cuda.current_device()))
-        dist.all_reduce(state, op=dist.ReduceOp.SUM, group=process_group)
-        state = state.to(self.confusion.device)
-        c = self.num_classes
-        self._synced = (state[: c * c].view(c, c), state[c * c :].view(2, 2))
-        return self
+        self._changed()
 
     # -- results ----------------------------------------------------------------------
     def compute(self) -> OccupancyReport:
         """IoU, per-class IoU, mIoU and group means of everything seen (synced if ``sync``-ed)."""
-        confusion, geometric = self._synced or (self.confusion, self.geometric)
+        confusion, geometric = self._totals()
         if int(confusion.sum()) == 0:
             raise RuntimeError("compute: no voxel has been evaluated yet; call update() first")
         occupied_iou = per_class_iou(geometric)[0]
@@ -193,16 +156,6 @@ class OccupancyMetrics(nn.Module):
             "ignore_label": self.ignore_label,
             "groups": {k: list(v) for k, v in self.groups.items()},
         }
-
-    def get_extra_state(self) -> dict[str, Any]:
-        return self._config()
-
-    def set_extra_state(self, state: dict[str, Any]) -> None:
-        if state != self._config():
-            raise ValueError(
-                f"state_dict: saved configuration {state} differs from {self._config()}"
-            )
-        self._synced = None
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in self._config().items() if k != "groups")

@@ -12,20 +12,21 @@ non-free classes, RayIoU the mean over thresholds. Every rule is SparseOcc's
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
-import torch.distributed as dist
 from jaxtyping import Float
-from torch import Tensor, nn
+from torch import Tensor
 
 from dego._typing import typechecked
 from dego.classes import CLASS_NAMES, FREE_LABEL, NUM_CLASSES
 from dego.gaussians import _rotation_matrices
 from dego.grid import VoxelGrid
+from dego.metrics.counts import CountingMetric
 from dego.raycast import cast_rays, generate_lidar_rays
 
 DEFAULT_THRESHOLDS = (1.0, 2.0, 4.0)
@@ -80,8 +81,11 @@ def lidar_origins(
         raise ValueError(f"max_origins: expected an int >= 1, got {max_origins}")
     ref = reference_index % frames
     sensor = g @ lid  # (F, 4, 4) lidar -> global
-    in_ref_lidar = torch.linalg.inv(sensor[ref]) @ sensor  # lidar_f -> lidar_ref
-    origins = (lid[ref] @ in_ref_lidar)[:, :3, 3]  # lidar_f origin in the reference ego frame
+    # every frame's lidar origin in the reference lidar frame, rounded to float32 as the
+    # reference does; the reference frame's own origin is exactly 0
+    relative = (torch.linalg.inv(sensor[ref]) @ sensor)[:, :3, 3].float().double()
+    relative[ref] = 0
+    origins = relative @ lid[ref, :3, :3].T + lid[ref, :3, 3]  # reference ego frame
     keep = (origins[:, 0].abs() < xy_limit) & (origins[:, 1].abs() < xy_limit)
     origins = origins[keep]
     if origins.shape[0] > max_origins:
@@ -148,7 +152,7 @@ def _nanmean(values: Tensor) -> float:
     return float(finite.mean()) if finite.numel() else math.nan
 
 
-class RayIoU(nn.Module):
+class RayIoU(CountingMetric):
     """Data-set RayIoU with a torchmetrics-style ``update / compute / reset / merge / sync``.
 
     Args:
@@ -165,6 +169,7 @@ class RayIoU(nn.Module):
     (len(thresholds), C)``, pooled over every scored ray.
     """
 
+    COUNTS = ("gt_count", "pred_count", "true_positives")
     gt_count: Tensor
     pred_count: Tensor
     true_positives: Tensor
@@ -206,13 +211,20 @@ class RayIoU(nn.Module):
         self.register_buffer("gt_count", torch.zeros(num_classes, **kw))
         self.register_buffer("pred_count", torch.zeros(num_classes, **kw))
         self.register_buffer("true_positives", torch.zeros(len(thresholds), num_classes, **kw))
-        self._synced: tuple[Tensor, Tensor, Tensor] | None = None
+        # identifies the ray pattern in the configuration (merge / load_state_dict check it)
+        self._rays_digest = hashlib.sha256(self.rays.cpu().numpy().tobytes()).hexdigest()[:16]
 
     def _check_labels(self, name: str, labels: Tensor | np.ndarray) -> Tensor:
         if isinstance(labels, np.ndarray):
             labels = torch.from_numpy(np.ascontiguousarray(labels))
-        if not isinstance(labels, Tensor) or labels.is_floating_point() or labels.is_complex():
-            raise TypeError(f"{name}: expected an integer label grid, got {type(labels).__name__}")
+        if (
+            not isinstance(labels, Tensor)
+            or labels.is_floating_point()
+            or labels.is_complex()
+            or labels.dtype == torch.bool
+        ):
+            kind = labels.dtype if isinstance(labels, Tensor) else type(labels).__name__
+            raise TypeError(f"{name}: expected an integer label grid, got {kind}")
         if tuple(labels.shape) != self.grid.shape:
             raise ValueError(
                 f"{name}: expected shape {self.grid.shape} (the grid), got {tuple(labels.shape)}"
@@ -242,13 +254,15 @@ class RayIoU(nn.Module):
         pred, gt = self._check_labels("pred", pred), self._check_labels("gt", gt)
         if isinstance(origins, np.ndarray):
             origins = torch.from_numpy(origins)
+        if origins.dtype == torch.bool or origins.is_complex():
+            raise TypeError(f"origins: expected real coordinates, got {origins.dtype}")
         if origins.ndim != 2 or origins.shape[-1] != 3:
             raise ValueError(f"origins: expected (K, 3), got {tuple(origins.shape)}")
         if origins.shape[0] == 0:
             raise ValueError("origins: need at least one origin, got K = 0")
         device = gt.device
         pred = pred.to(device)
-        origins, rays = origins.to(device), self.rays.to(device)
+        origins, rays = origins.to(device, torch.float64), self.rays.to(device)
         gt_distance, gt_label = cast_rays(gt, origins, rays, self.grid, self.free_label)
         pred_distance, pred_label = cast_rays(pred, origins, rays, self.grid, self.free_label)
         scored = gt_label != self.free_label
@@ -264,45 +278,11 @@ class RayIoU(nn.Module):
         self.gt_count += torch.bincount(gt_label, minlength=c).to(self.gt_count.device)
         self.pred_count += torch.bincount(pred_label, minlength=c).to(self.pred_count.device)
         self.true_positives += tp
-        self._synced = None
-
-    def merge(self, other: RayIoU) -> RayIoU:
-        """Add another instance's counts (same configuration); returns ``self``."""
-        if not isinstance(other, RayIoU):
-            raise TypeError(f"other: expected RayIoU, got {type(other).__name__}")
-        if other._config() != self._config():
-            raise ValueError(
-                f"other: configuration {other._config()} differs from {self._config()}"
-            )
-        for name in ("gt_count", "pred_count", "true_positives"):
-            getattr(self, name).add_(getattr(other, name).to(getattr(self, name).device))
-        self._synced = None
-        return self
-
-    def reset(self) -> None:
-        """Zero the counts."""
-        for t in (self.gt_count, self.pred_count, self.true_positives):
-            t.zero_()
-        self._synced = None
-
-    def sync(self, process_group: Any = None) -> RayIoU:
-        """All-reduce (sum) the int64 counts over the ranks of ``process_group``; returns
-        ``self``. A no-op without torch.distributed; idempotent (local counts are kept)."""
-        if not (dist.is_available() and dist.is_initialized()):
-            return self
-        parts = (self.gt_count, self.pred_count, self.true_positives.reshape(-1))
-        state = torch.cat(parts)
-        if dist.get_backend(process_group) == "nccl" and state.device.type != "cuda":
-            state = state.to(torch.device("cuda", torch.cuda.current_device()))
-        dist.all_reduce(state, op=dist.ReduceOp.SUM, group=process_group)
-        state = state.to(self.gt_count.device)
-        c = self.num_classes
-        self._synced = (state[:c], state[c : 2 * c], state[2 * c :].view(-1, c))
-        return self
+        self._changed()
 
     def compute(self) -> RayIoUReport:
         """IoU per threshold and class, RayIoU@t and RayIoU of everything seen."""
-        gt, pred, tp = self._synced or (self.gt_count, self.pred_count, self.true_positives)
+        gt, pred, tp = self._totals()
         if int(gt.sum()) == 0:
             raise RuntimeError("compute: no scored ray yet (every gt ray hit free space?)")
         per_class = tp.double() / (gt + pred - tp).double()  # (thresholds, C)
@@ -329,18 +309,9 @@ class RayIoU(nn.Module):
             "num_classes": self.num_classes,
             "free_label": self.free_label,
             "class_ids": list(self.class_ids),
-            "grid": (self.grid.lower, self.grid.upper, self.grid.voxel_size),
+            "grid": [list(self.grid.lower), list(self.grid.upper), list(self.grid.voxel_size)],
+            "rays": [int(self.rays.shape[0]), self._rays_digest],
         }
-
-    def get_extra_state(self) -> dict[str, Any]:
-        return self._config()
-
-    def set_extra_state(self, state: dict[str, Any]) -> None:
-        if state != self._config():
-            raise ValueError(
-                f"state_dict: saved configuration {state} differs from {self._config()}"
-            )
-        self._synced = None
 
     def extra_repr(self) -> str:
         return f"thresholds={self.thresholds}, num_classes={self.num_classes}"

@@ -1,0 +1,480 @@
+"""cast_rays / generate_lidar_rays: analytic rays, the DVR quirks, and exact agreement with
+the scalar reference in tests/ray_reference.py."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dego.grid import VoxelGrid
+from dego.raycast import MAX_STEPS, cast_rays, generate_lidar_rays
+from tests.ray_reference import (
+    REFERENCE_MAX_STEPS,
+    cast_all,
+    reference_lidar_rays,
+    to_voxel_units,
+    traverse,
+)
+
+FREE = 17
+CAR, BUS, PED = 4, 3, 7
+SQRT2, SQRT3 = math.sqrt(2.0), math.sqrt(3.0)
+
+
+def unit_grid(shape: tuple[int, int, int], size: float = 1.0) -> VoxelGrid:
+    """A grid at the origin: voxel (i, j, k) spans [i, i+1) * size, so metres / size are
+    voxel units exactly (for sizes that are powers of two)."""
+    return VoxelGrid((0.0, 0.0, 0.0), tuple(n * size for n in shape), size)
+
+
+def free(shape: tuple[int, int, int]) -> torch.Tensor:
+    return torch.full(shape, FREE, dtype=torch.int64)
+
+
+def cast(labels, origins, directions, grid, free_label: int = FREE):
+    """``cast_rays`` on plain lists; returns (distances float32 ndarray, labels list)."""
+    distance, label = cast_rays(
+        torch.as_tensor(labels),
+        torch.tensor(origins, dtype=torch.float32).reshape(-1, 3),
+        torch.tensor(directions, dtype=torch.float32).reshape(-1, 3),
+        grid,
+        free_label,
+    )
+    assert distance.dtype == torch.float32 and label.dtype == torch.int64
+    return distance.numpy(), label.tolist()
+
+
+def metres(voxel_units: float, size: float = 1.0) -> np.float32:
+    """What the reference reports for an exit distance in voxel units."""
+    return np.float32(voxel_units) * np.float32(size)
+
+
+# ---------------------------------------------------------------------------------------
+# MAX_STEPS and the ray pattern
+# ---------------------------------------------------------------------------------------
+
+
+def test_max_steps_is_the_kernels() -> None:
+    assert MAX_STEPS == REFERENCE_MAX_STEPS == 1000
+
+
+def test_generate_lidar_rays_pattern() -> None:
+    rays = generate_lidar_rays()
+    assert rays.shape == (14040, 3) and rays.dtype == torch.float32
+    np.testing.assert_array_equal(rays.numpy(), reference_lidar_rays())
+    norms = torch.linalg.vector_norm(rays.double(), dim=-1)
+    assert torch.allclose(norms, torch.ones_like(norms), atol=1e-6)
+
+    grid = rays.double().reshape(39, 360, 3)  # row p * 360 + a
+    pitch = torch.asin(grid[..., 2])
+    # one pitch per row of 360, constant along the row
+    assert torch.allclose(pitch, pitch[:, :1].expand(-1, 360), atol=1e-6)
+    pitches = pitch[:, 0]
+    assert pitches[0].item() == pytest.approx(-(math.pi / 2 - math.atan(1)), abs=1e-6)
+    assert pitches[0].item() == pytest.approx(math.radians(-45), abs=1e-6)
+    for k in range(1, 11):  # -(pi/2 - atan(k)) for k = 1..10
+        assert pitches[k - 1].item() == pytest.approx(-(math.pi / 2 - math.atan(k)), abs=1e-6)
+    steps = pitches.diff()
+    assert bool((steps > 0).all())
+    last_step = -(math.pi / 2 - math.atan(10)) + (math.pi / 2 - math.atan(9))
+    assert torch.allclose(steps[9:], torch.full_like(steps[9:], last_step), atol=1e-6)
+    assert pitches[-1].item() >= 0.21 > pitches[-2].item()
+    assert math.degrees(pitches[-1].item()) == pytest.approx(12.55, abs=0.01)
+
+    azimuth = torch.rad2deg(torch.atan2(grid[..., 1], grid[..., 0])) % 360
+    expected = torch.arange(360, dtype=torch.float64).expand(39, -1)
+    error = (azimuth - expected + 180) % 360 - 180
+    assert error.abs().max().item() < 1e-4
+    # row 0: pitch -45 degrees, azimuth 0
+    np.testing.assert_allclose(
+        rays[0].numpy(), [math.sqrt(0.5), 0.0, -math.sqrt(0.5)], atol=1e-7, rtol=0
+    )
+    np.testing.assert_allclose(rays[90].numpy(), [0.0, math.sqrt(0.5), -math.sqrt(0.5)], atol=1e-7)
+
+
+# ---------------------------------------------------------------------------------------
+# axis-aligned rays: hit voxel, exit distance and label known analytically
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("size", [1.0, 0.5, 0.4])
+def test_axis_aligned_hit_reports_the_exit_distance(size: float) -> None:
+    grid = unit_grid((6, 1, 1), size)
+    labels = free((6, 1, 1))
+    labels[4] = CAR
+    centre = [0.5 * size] * 3  # voxel 0's centre: 0.5 voxel units on every axis
+    distance, label = cast(labels, [centre], [[1.0, 0.0, 0.0]], grid)
+    # enters voxel 4 at 3.5 voxels, exits it at 4.5: the exit distance is reported
+    assert label == [CAR]
+    assert distance[0] == metres(4.5, size)
+
+
+def test_the_six_axis_directions() -> None:
+    grid = unit_grid((3, 3, 3))
+    labels = free((3, 3, 3))
+    faces = {(2, 1, 1): 1, (0, 1, 1): 2, (1, 2, 1): 3, (1, 0, 1): 5, (1, 1, 2): 6, (1, 1, 0): 8}
+    for voxel, value in faces.items():
+        labels[voxel] = value
+    directions = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+    distance, label = cast(labels, [[1.5, 1.5, 1.5]], directions, grid)
+    assert label == [1, 2, 3, 5, 6, 8]
+    np.testing.assert_array_equal(distance, np.full(6, metres(1.5)))  # exit of the face voxel
+
+
+def test_occupied_origin_voxel_is_hit_at_its_exit() -> None:
+    grid = unit_grid((4, 4, 4))
+    labels = free((4, 4, 4))
+    labels[1, 1, 1] = PED
+    distance, label = cast(labels, [[1.25, 1.5, 1.5]], [[1, 0, 0], [-1, 0, 0]], grid)
+    assert label == [PED, PED]
+    np.testing.assert_array_equal(distance, [metres(0.75), metres(0.25)])
+
+
+def test_label_is_read_at_the_hit_and_any_non_free_value_is_occupied() -> None:
+    grid = unit_grid((5, 1, 1))
+    labels = free((5, 1, 1))
+    labels[2] = 0  # "others" is occupied too
+    labels[3] = CAR
+    distance, label = cast(labels, [[0.5, 0.5, 0.5]], [[2.0, 0.0, 0.0]], grid)
+    assert label == [0] and distance[0] == metres(2.5)  # direction length does not matter
+
+
+def test_ray_with_no_hit_reports_the_last_in_grid_voxel() -> None:
+    grid = unit_grid((4, 3, 2), 0.4)
+    labels = free((4, 3, 2))
+    labels[0, 0, 0] = CAR  # behind the rays: irrelevant
+    distance, label = cast(
+        labels, [[0.6, 0.6, 0.2]], [[1, 0, 0], [0, 1, 0], [0, 0, 1]], grid
+    )  # origin voxel units (1.5, 1.5, 0.5)
+    assert label == [FREE, FREE, FREE]
+    np.testing.assert_array_equal(distance, [metres(2.5, 0.4), metres(1.5, 0.4), metres(1.5, 0.4)])
+
+
+def test_anisotropic_voxels_report_metric_distances() -> None:
+    # not a SparseOcc case (its grid is isotropic): distances are metres along the ray
+    grid = VoxelGrid((0.0, 0.0, 0.0), (2.0, 2.0, 1.0), (0.5, 1.0, 0.25))  # (4, 2, 4)
+    distance, label = cast(free((4, 2, 4)), [[0.25, 0.5, 0.125]], [[1, 0, 0], [0, 1, 0]], grid)
+    assert label == [FREE, FREE]
+    np.testing.assert_array_equal(distance, [np.float32(1.75), np.float32(1.5)])
+
+
+def test_custom_free_label() -> None:
+    grid = unit_grid((4, 1, 1))
+    labels = torch.zeros(4, 1, 1, dtype=torch.int64)  # 0 is free here
+    labels[2] = FREE  # 17 is occupied then
+    distance, label = cast(labels, [[0.5, 0.5, 0.5]], [[1, 0, 0]], grid, free_label=0)
+    assert label == [FREE] and distance[0] == metres(2.5)
+
+
+# ---------------------------------------------------------------------------------------
+# corners and edges: the tie-break order
+# ---------------------------------------------------------------------------------------
+
+
+def path_of(direction, origin=(0.5, 0.5, 0.5), shape=(3, 3, 3)):
+    """Voxels visited (in order) by the scalar reference, with exit parameters."""
+    start, unit = to_voxel_units(origin, direction, (0.0, 0.0, 0.0), 1.0)
+    return traverse(start, unit, shape)
+
+
+def test_reference_tie_break_paths() -> None:
+    """The tie-break ``X if tX < tY and tX < tZ; Z if tX < tY; Y if tY < tZ; else Z``
+    makes exact corner and edge crossings step Z before Y before X."""
+    # three-way tie at a corner: Z, then Y, then X
+    assert [v for v, _ in path_of((1, 1, 1))] == [
+        (0, 0, 0), (0, 0, 1), (0, 1, 1), (1, 1, 1), (1, 1, 2), (1, 2, 2), (2, 2, 2)
+    ]  # fmt: skip
+    # edges: (x, y) ties go Y first, (x, z) and (y, z) ties go Z first
+    assert [v for v, _ in path_of((1, 1, 0))][:3] == [(0, 0, 0), (0, 1, 0), (1, 1, 0)]
+    assert [v for v, _ in path_of((1, 0, 1))][:3] == [(0, 0, 0), (0, 0, 1), (1, 0, 1)]
+    assert [v for v, _ in path_of((0, 1, 1))][:3] == [(0, 0, 0), (0, 0, 1), (0, 1, 1)]
+    # the same with negative steps from the far corner
+    assert [v for v, _ in path_of((-1, -1, -1), origin=(2.5, 2.5, 2.5))][:4] == [
+        (2, 2, 2), (2, 2, 1), (2, 1, 1), (1, 1, 1)
+    ]  # fmt: skip
+
+
+CORNER_PATH = [  # direction (1, 1, 1) from (0.5, 0.5, 0.5): voxel, exit parameter / sqrt(3)
+    ((0, 0, 0), 0.5), ((0, 0, 1), 0.5), ((0, 1, 1), 0.5), ((1, 1, 1), 1.5),
+    ((1, 1, 2), 1.5), ((1, 2, 2), 1.5), ((2, 2, 2), 2.5),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("voxel", "exit_over_sqrt3"), CORNER_PATH)
+def test_ray_through_voxel_corners(voxel: tuple[int, int, int], exit_over_sqrt3: float) -> None:
+    grid = unit_grid((3, 3, 3))
+    labels = free((3, 3, 3))
+    labels[voxel] = CAR
+    distance, label = cast(labels, [[0.5, 0.5, 0.5]], [[1, 1, 1]], grid)
+    assert label == [CAR]
+    assert distance[0] == metres(exit_over_sqrt3 * SQRT3)
+
+
+@pytest.mark.parametrize("voxel", [(1, 0, 0), (0, 1, 0), (1, 1, 0), (1, 0, 1), (2, 1, 1)])
+def test_corner_neighbours_off_the_tie_path_are_missed(voxel: tuple[int, int, int]) -> None:
+    grid = unit_grid((3, 3, 3))
+    labels = free((3, 3, 3))
+    labels[voxel] = CAR
+    distance, label = cast(labels, [[0.5, 0.5, 0.5]], [[1, 1, 1]], grid)
+    assert label == [FREE]  # no hit: last voxel (2, 2, 2)
+    assert distance[0] == metres(2.5 * SQRT3)
+
+
+@pytest.mark.parametrize(
+    ("direction", "on_path", "off_path"),
+    [
+        ((1, 1, 0), (0, 1, 0), (1, 0, 0)),  # x/y tie: Y first
+        ((1, 0, 1), (0, 0, 1), (1, 0, 0)),  # x/z tie: Z first
+        ((0, 1, 1), (0, 0, 1), (0, 1, 0)),  # y/z tie: Z first
+        ((-1, 1, 0), (1, 1, 0), (0, 0, 0)),  # negative x, from (1.5, 0.5, 0.5)
+    ],
+)
+def test_ray_through_voxel_edges(direction, on_path, off_path) -> None:
+    grid = unit_grid((3, 3, 3))
+    origin = [1.5, 0.5, 0.5] if direction[0] < 0 else [0.5, 0.5, 0.5]
+    labels = free((3, 3, 3))
+    labels[on_path] = BUS
+    distance, label = cast(labels, [origin], [direction], grid)
+    assert label == [BUS] and distance[0] == metres(0.5 * SQRT2)
+    labels = free((3, 3, 3))
+    labels[off_path] = BUS
+    _, label = cast(labels, [origin], [direction], grid)
+    assert label == [FREE]
+
+
+# ---------------------------------------------------------------------------------------
+# rays from outside the grid, rays that never enter, truncation toward zero
+# ---------------------------------------------------------------------------------------
+
+
+def test_ray_starting_outside_enters_the_grid() -> None:
+    grid = unit_grid((3, 1, 1), 0.5)
+    labels = free((3, 1, 1))
+    labels[1] = CAR
+    # origin at -2.5 voxels; voxel 1 is exited at x = 2, i.e. 4.5 voxels along the ray
+    distance, label = cast(labels, [[-1.25, 0.25, 0.25]], [[1, 0, 0]], grid)
+    assert label == [CAR] and distance[0] == metres(4.5, 0.5)
+    # from the far side, through the upper face
+    distance, label = cast(labels, [[3.25, 0.25, 0.25]], [[-1, 0, 0]], grid)  # 6.5 voxels
+    assert label == [CAR] and distance[0] == metres(5.5, 0.5)
+
+
+@pytest.mark.parametrize("corner_label", [FREE, CAR])
+def test_rays_that_never_enter_keep_the_placeholders(corner_label: int) -> None:
+    grid = unit_grid((3, 3, 3), 0.4)
+    labels = free((3, 3, 3))
+    labels[0, 0, 0] = corner_label
+    labels[2, 2, 2] = BUS
+    origins = [[-1.0, 0.6, 0.6], [0.6, 5.0, 0.6]]  # before the grid in x; beside it in y
+    directions = [[-1, 0, 0], [0, 0, 1], [1, 0, 0]]
+    distance, label = cast(labels, origins, directions, grid)
+    # distance -1 voxel (-voxel_size metres) and the label of voxel (0, 0, 0); only the
+    # first origin's +x ray enters (and hits voxel (0, 1, 1), free -> no hit)
+    never = -np.float32(0.4)
+    np.testing.assert_array_equal(distance, [never, never, metres(5.5, 0.4), never, never, never])
+    assert label == [corner_label] * 2 + [FREE] + [corner_label] * 3
+
+
+def test_truncation_toward_zero_differs_from_floor() -> None:
+    grid = unit_grid((3, 3, 3))
+    labels = free((3, 3, 3))
+    labels[0, 0, 0] = CAR
+    # x = -0.5 truncates to voxel 0 (floor would give -1): the ray starts "inside" voxel
+    # (0, 0, 0) and, going -x, exits it at t = (0 - (-0.5)) / -1 = -0.5.
+    distance, label = cast(labels, [[-0.5, 0.5, 0.5]], [[-1, 0, 0]], grid)
+    assert label == [CAR] and distance[0] == metres(-0.5)
+    # free there: still recorded, so "no hit" at -0.5 with its label (not the placeholder)
+    labels[0, 0, 0] = FREE
+    labels[1, 1, 1] = BUS
+    distance, label = cast(labels, [[-0.5, 0.5, 0.5]], [[-1, 0, 0]], grid)
+    assert label == [FREE] and distance[0] == metres(-0.5)
+    # y = -0.5 truncates to row 0: a ray that passes beside the grid walks through it
+    labels = free((3, 3, 3))
+    labels[0, 0, 0] = CAR
+    distance, label = cast(labels, [[-2.5, -0.5, 0.5]], [[1, 0, 0]], grid)
+    assert label == [CAR] and distance[0] == metres(3.5)
+    # at exactly -1.0 truncation gives -1 again: never enters
+    distance, label = cast(labels, [[-2.5, -1.0, 0.5]], [[1, 0, 0]], grid)
+    assert label == [CAR] and distance[0] == metres(-1.0)  # placeholders
+
+
+def test_step_limit() -> None:
+    """At most MAX_STEPS + 1 = 1001 loop iterations: a ray 1000.5 voxels before the grid
+    reaches voxel 0 on its last iteration, one at 1001.5 never does."""
+    grid = unit_grid((4, 1, 1))
+    labels = free((4, 1, 1))
+    labels[0] = CAR
+    origins = [[-MAX_STEPS - 0.5, 0.5, 0.5], [-MAX_STEPS - 1.5, 0.5, 0.5]]
+    distance, label = cast(labels, origins, [[1, 0, 0]], grid)
+    assert label == [CAR, CAR]  # the second is the voxel-(0, 0, 0) placeholder
+    np.testing.assert_array_equal(distance, [metres(MAX_STEPS + 1.5), metres(-1.0)])
+    # voxel 0 free, voxel 1 occupied: voxel 1 is beyond the step limit -> no hit at voxel 0
+    labels = free((4, 1, 1))
+    labels[1] = CAR
+    distance, label = cast(labels, origins[:1], [[1, 0, 0]], grid)
+    assert label == [FREE] and distance[0] == metres(MAX_STEPS + 1.5)
+    # one voxel closer, voxel 1 is reached
+    distance, label = cast(labels, [[-MAX_STEPS + 0.5, 0.5, 0.5]], [[1, 0, 0]], grid)
+    assert label == [CAR] and distance[0] == metres(MAX_STEPS + 1.5)
+
+
+# ---------------------------------------------------------------------------------------
+# exact agreement with the scalar reference
+# ---------------------------------------------------------------------------------------
+
+DIAGONALS = [d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)]
+
+
+@st.composite
+def ray_problems(draw):
+    shape = tuple(draw(st.integers(1, 5)) for _ in range(3))
+    if draw(st.booleans()):  # voxel units exact in float32: exact corner and edge ties
+        size = draw(st.sampled_from([1.0, 0.5, 0.25]))
+        lower = tuple(draw(st.sampled_from([0.0, -1.0, -2.0, -40.0])) for _ in range(3))
+    else:
+        size = draw(st.sampled_from([0.4, 0.3]))
+        lower = tuple(draw(st.sampled_from([0.0, -2.6, 0.7, -40.0])) for _ in range(3))
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    density = draw(st.sampled_from([0.0, 0.05, 0.3, 0.8, 1.0]))
+    labels = rng.integers(0, 17, shape)
+    labels[rng.random(shape) >= density] = FREE
+    extent = np.asarray(shape, dtype=np.float64)
+    k = draw(st.integers(1, 3))
+    kind = draw(st.sampled_from(["uniform", "lattice", "near"]))
+    if kind == "uniform":  # anywhere within two grid extents (often outside)
+        units = rng.uniform(-1.0, 2.0, (k, 3)) * extent
+    elif kind == "lattice":  # on voxel faces, edges, corners and centres, incl. negative
+        units = rng.integers(-6, 2 * int(extent.max()) + 6, (k, 3)) / rng.choice([1, 2, 4])
+    else:  # just below zero, where truncation toward zero differs from floor
+        units = rng.uniform(-1.5, 1.0, (k, 3)) * rng.choice([1.0, 0.1])
+    origins = (np.asarray(lower) + units * size).astype(np.float32)
+    r = draw(st.integers(1, 6))
+    mode = draw(st.sampled_from(["random", "axis", "diagonal", "mixed"]))
+    directions = rng.normal(size=(r, 3))
+    if mode in ("axis", "diagonal", "mixed"):
+        picks = rng.integers(0, len(DIAGONALS), r)
+        lattice = np.asarray([DIAGONALS[i] for i in picks])
+        if mode == "axis":
+            lattice = np.eye(3)[rng.integers(0, 3, r)] * rng.choice([-1.0, 1.0], (r, 1))
+        scale = rng.choice([1.0, 0.5, 2.0, 3.0], (r, 1))
+        if mode == "mixed":
+            directions = np.where(rng.random((r, 1)) < 0.5, lattice * scale, directions)
+        else:
+            directions = lattice * scale
+    return labels, origins, directions.astype(np.float32), lower, size, shape
+
+
+@st.composite
+def tie_problems(draw):
+    """Exact grids, origins at voxel centres or corners (same fraction on every axis) and
+    diagonal directions: every crossing is an exact edge or corner tie."""
+    shape = tuple(draw(st.integers(2, 5)) for _ in range(3))
+    size = draw(st.sampled_from([1.0, 0.5, 0.25]))
+    lower = tuple(draw(st.sampled_from([0.0, -1.0, -40.0])) for _ in range(3))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    labels = rng.integers(0, 17, shape)
+    labels[rng.random(shape) >= draw(st.sampled_from([0.2, 0.5, 0.8]))] = FREE
+    k = draw(st.integers(1, 3))
+    fraction = draw(st.sampled_from([0.0, 0.5, 0.25]))
+    units = rng.integers(-1, max(shape) + 1, (k, 3)) + fraction
+    origins = (np.asarray(lower) + units * size).astype(np.float32)
+    diagonal = [d for d in DIAGONALS if sum(map(abs, d)) >= 2]
+    directions = np.asarray([diagonal[i] for i in rng.integers(0, len(diagonal), 8)])
+    directions = directions * rng.choice([1.0, 0.5, 2.0], (8, 1))
+    return labels, origins, directions.astype(np.float32), lower, size, shape
+
+
+@settings(max_examples=40)
+@given(st.one_of(ray_problems(), tie_problems()))
+def test_matches_the_scalar_reference_exactly(problem) -> None:
+    labels, origins, directions, lower, size, shape = problem
+    upper = tuple(lo + n * size for lo, n in zip(lower, shape, strict=True))
+    grid = VoxelGrid(lower, upper, size)
+    assert grid.shape == shape
+    distance, label = cast_rays(
+        torch.from_numpy(labels), torch.from_numpy(origins), torch.from_numpy(directions), grid
+    )
+    expected_distance, expected_label = cast_all(
+        labels, origins, directions, lower, size, free_label=FREE
+    )
+    np.testing.assert_array_equal(label.numpy(), expected_label)
+    np.testing.assert_array_equal(distance.numpy(), expected_distance)
+
+
+def test_matches_the_scalar_reference_on_lidar_rays() -> None:
+    """A small Occ3D-like grid and a subsample of the real ray pattern from a few origins,
+    including one outside the grid and one with negative voxel coordinates."""
+    grid = VoxelGrid((-4.0, -4.0, -1.0), (4.0, 4.0, 1.4), 0.4)
+    rng = np.random.default_rng(7)
+    labels = rng.integers(0, 17, grid.shape)
+    labels[rng.random(grid.shape) < 0.93] = FREE
+    origins = np.asarray(
+        [[0.9858, 0.0, 1.8402], [-4.1, -4.3, -0.2], [3.0, -2.2, 0.1]], dtype=np.float32
+    )
+    rays = generate_lidar_rays().numpy()[::113]
+    distance, label = cast_rays(
+        torch.from_numpy(labels), torch.from_numpy(origins), torch.from_numpy(rays), grid
+    )
+    expected_distance, expected_label = cast_all(labels, origins, rays, grid.lower, 0.4)
+    np.testing.assert_array_equal(label.numpy(), expected_label)
+    np.testing.assert_array_equal(distance.numpy(), expected_distance)
+    assert (expected_label != FREE).any() and (expected_distance < 0).any()
+
+
+# ---------------------------------------------------------------------------------------
+# bad input
+# ---------------------------------------------------------------------------------------
+
+
+def test_bad_input() -> None:
+    grid = unit_grid((3, 3, 3))
+    labels = free((3, 3, 3))
+    origin, direction = torch.tensor([[0.5, 0.5, 0.5]]), torch.tensor([[1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="does not match grid"):
+        cast_rays(free((3, 3, 2)), origin, direction, grid)
+    with pytest.raises(ValueError, match="at least one origin"):
+        cast_rays(labels, torch.zeros(0, 3), direction, grid)
+    with pytest.raises(ValueError, match="origins: expected finite"):
+        cast_rays(labels, torch.tensor([[math.inf, 0.0, 0.0]]), direction, grid)
+    with pytest.raises(ValueError, match="directions"):
+        cast_rays(labels, origin, torch.zeros(1, 3), grid)
+    with pytest.raises(ValueError, match="directions"):
+        cast_rays(labels, origin, torch.tensor([[math.nan, 1.0, 0.0]]), grid)
+    with pytest.raises(TypeError):  # float labels (jaxtyping's TypeCheckError)
+        cast_rays(labels.float(), origin, direction, grid)
+    with pytest.raises(TypeError):
+        cast_rays(labels, origin[0], direction, grid)
+
+
+def test_origins_outside_the_grid_are_allowed() -> None:
+    grid = unit_grid((3, 3, 3))
+    origins = torch.tensor([[100.0, -50.0, 7.0], [-1e4, 0.5, 0.5]])
+    labels = free((3, 3, 3))
+    labels[0, 0, 0] = BUS
+    distance, label = cast_rays(labels, origins, torch.eye(3), grid)
+    # the second origin's +x ray would reach the grid, but only after 10^4 > MAX_STEPS steps
+    assert distance.tolist() == [-1.0] * 6 and label.tolist() == [BUS] * 6
+
+
+# ---------------------------------------------------------------------------------------
+# devices
+# ---------------------------------------------------------------------------------------
+
+
+def test_cpu_and_device_agree(device: torch.device) -> None:
+    grid = VoxelGrid((-4.0, -4.0, -1.0), (4.0, 4.0, 1.4), 0.4)
+    rng = np.random.default_rng(3)
+    labels = torch.from_numpy(rng.integers(0, 18, grid.shape))
+    origins = torch.tensor([[0.9858, 0.0, 1.8402], [-5.0, 1.0, 0.3], [-0.1, -0.2, -0.05]])
+    rays = generate_lidar_rays()[::29]
+    d_cpu, l_cpu = cast_rays(labels, origins, rays, grid)
+    d_dev, l_dev = cast_rays(labels.to(device), origins.to(device), rays.to(device), grid)
+    assert d_dev.device.type == device.type
+    assert torch.equal(d_dev.cpu(), d_cpu) and torch.equal(l_dev.cpu(), l_cpu)
