@@ -215,7 +215,7 @@ class DecoupledDeformation(nn.Module):
         chunk_rows: about how many (Gaussian, time) rows the feature net and heads process
             at a time (Gaussians are chunked, every chunk covers all T); a speed knob
             only: results agree to floating-point rounding. ``None``: 4096 on CPU, where
-            cache-sized chunks are about 1.5x faster, all rows at once elsewhere.
+            cache-sized chunks are about 1.5-2x faster, all rows at once elsewhere.
     """
 
     def __init__(
@@ -372,7 +372,7 @@ class DecoupledDeformation(nn.Module):
         if self.preset == "official":
             heads["mask"] = self.mask_head
         # All T at once, over bounded chunks of Gaussians: the arithmetic of one pass,
-        # but on a CPU each chunk's activations stay in cache (about 1.5x faster fwd + bwd).
+        # but on a CPU each chunk's activations stay in cache (1.5-2x faster fwd + bwd).
         chunk_rows = self.chunk_rows or (_CPU_CHUNK_ROWS if static.device.type == "cpu" else 0)
         per_chunk = max(1, chunk_rows // (b * t)) if chunk_rows and b * t else max(n, 1)
         outputs: dict[str, list[Tensor]] = {name: [] for name in heads}
