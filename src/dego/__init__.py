@@ -18,6 +18,14 @@ from dego.classes import (
     Occ3DLabel,
     protocol_classes,
 )
+from dego.data import (
+    Occ3DDataset,
+    Occ3DLabels,
+    SyntheticFrame,
+    SyntheticScene,
+    load_occ3d_labels,
+    save_occ3d_labels,
+)
 from dego.deformation import (
     DecoupledDeformation,
     DeformationDeltas,
@@ -43,7 +51,7 @@ from dego.metrics import (
     lidar_origins,
     per_class_iou,
 )
-from dego.raycast import cast_rays, generate_lidar_rays
+from dego.raycast import cast_rays, generate_lidar_rays, observed_voxels
 from dego.splatting import DifferentiableSplatter, SplatOutput, splat
 from dego.teacher import (
     FactorizedSpatioTemporalTeacher,
@@ -74,7 +82,9 @@ __all__ = [
     "FactorizedTeacherFeatures",
     "GaussianSet",
     "GaussianVoxelizer",
+    "Occ3DDataset",
     "Occ3DLabel",
+    "Occ3DLabels",
     "OccupancyMetrics",
     "OccupancyReport",
     "PositionalEncoding",
@@ -82,6 +92,8 @@ __all__ = [
     "RayIoUReport",
     "SplatOutput",
     "StudentProjector",
+    "SyntheticFrame",
+    "SyntheticScene",
     "TeacherFeatureCache",
     "TeacherOutput",
     "VoxelGrid",
@@ -95,11 +107,14 @@ __all__ = [
     "distillation_loss",
     "generate_lidar_rays",
     "lidar_origins",
+    "load_occ3d_labels",
     "normalize_quaternions",
+    "observed_voxels",
     "per_class_iou",
     "positional_encoding",
     "protocol_classes",
     "quaternions_to_rotation_matrices",
+    "save_occ3d_labels",
     "splat",
     "voxelize",
 ]

@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 import torch
-from jaxtyping import Float, Int
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from dego._typing import typechecked
@@ -80,65 +80,54 @@ def _entry_possible(origin: Tensor, direction: Tensor, shape: Tensor) -> Tensor:
     return (enter <= leave) & (leave >= 0)
 
 
-@typechecked
-def cast_rays(
-    labels: Int[Tensor, "X Y Z"],
-    origins: Float[Tensor, "K 3"],
-    directions: Float[Tensor, "R 3"],
-    grid: VoxelGrid,
-    free_label: int = FREE_LABEL,
-) -> tuple[Float[Tensor, " KR"], Int[Tensor, " KR"]]:
-    """Cast every direction from every origin through a label grid; first hits.
-
-    Args:
-        labels: ``(X, Y, Z)`` integer labels on ``grid`` (any value but ``free_label``
-            is occupied).
-        origins: ``(K, 3)`` ray origins in metres (grid frame); may lie outside the grid.
-        directions: ``(R, 3)`` ray directions (any non-zero length).
-        grid: the voxel grid of ``labels``.
-        free_label: the empty label.
-
-    Returns:
-        ``hit_distance (K R,)`` float32 metres along the ray (origin-major: ray
-        ``k R + r``; negative, ``-voxel_size``, where the ray never enters the grid) and
-        ``hit_label (K R,)`` int64 (usually ``free_label`` where nothing is hit; see the
-        module docstring for rays that never enter).
-    """
+def _check_grid_labels(labels: Tensor, grid: VoxelGrid) -> None:
     if tuple(labels.shape) != grid.shape:
         raise ValueError(f"labels: shape {tuple(labels.shape)} does not match grid {grid.shape}")
-    if origins.shape[0] == 0:
-        raise ValueError("origins: need at least one origin, got K = 0")
-    device = labels.device
-    lower = torch.tensor(grid.lower, dtype=torch.float32, device=device)
-    size = torch.tensor(grid.voxel_size, dtype=torch.float32, device=device)
-    shape = torch.tensor(grid.shape, device=device)
-    o64 = origins.to(device=device, dtype=torch.float64)
+
+
+def _voxel_rays(
+    origins: Tensor, directions: Tensor, grid: VoxelGrid
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Paired ``(N, 3)`` origins (metres) and directions -> float64 voxel-unit starts, unit
+    directions and metres per unit of ray parameter, rounded as the reference does."""
+    device = origins.device
+    o64 = origins.to(dtype=torch.float64)
     d64 = directions.to(device=device, dtype=torch.float32).double()
     if not bool(torch.isfinite(o64).all()):
         raise ValueError("origins: expected finite values")
     if not bool(torch.isfinite(d64).all()) or bool((d64 == 0).all(-1).any()):
         raise ValueError("directions: expected finite, non-zero vectors")
-    k, r = o64.shape[0], d64.shape[0]
-    lower64, size64 = lower.double(), size.double()
+    lower = torch.tensor(grid.lower, dtype=torch.float32, device=device).double()
+    size = torch.tensor(grid.voxel_size, dtype=torch.float32, device=device).double()
     # voxel units computed in float64 and rounded to float32 once, as the reference does
-    start = ((o64 - lower64) / size64).float().double()  # (K, 3)
-    end = (((d64[None] + o64[:, None]) - lower64) / size64).float().double()  # (K, R, 3)
-    delta = end - start[:, None]
-    length = torch.linalg.vector_norm(delta, dim=-1, keepdim=True)
-    unit = (delta / length).reshape(-1, 3)  # (K R, 3)
-    origin = start.repeat_interleave(r, 0)
+    start = ((o64 - lower) / size).float().double()
+    end = (((d64 + o64) - lower) / size).float().double()
+    delta = end - start
+    unit = delta / torch.linalg.vector_norm(delta, dim=-1, keepdim=True)
     # metres per unit of ray parameter (voxel units along a unit voxel-space direction)
-    metres = torch.linalg.vector_norm(unit * size.double(), dim=-1)
+    return start, unit, torch.linalg.vector_norm(unit * size, dim=-1)
 
-    n = k * r
-    labels = labels.long()
+
+def _march(
+    labels: Tensor,  # (X, Y, Z) int64
+    origin: Tensor,  # (N, 3) float64 voxel units
+    unit: Tensor,  # (N, 3) float64 unit directions
+    free_label: int,
+    visited: Tensor | None = None,  # (X + 2) (Y + 2) (Z + 2) bool, marked in place
+) -> tuple[Tensor, Tensor]:
+    """Amanatides-Woo traversal of every ray; first hits ``(distance in voxel units,
+    label)`` with the reference's placeholders. With ``visited`` (the padded grid,
+    flattened), every voxel a ray passes up to and including its hit is marked."""
+    device = labels.device
+    n = origin.shape[0]
+    shape = torch.tensor(labels.shape, device=device)
     # never entered: the reference's placeholders, -1 voxel and the label of voxel (0, 0, 0)
     distance = torch.full((n,), -1.0, dtype=torch.float64, device=device)
     hit = labels[0, 0, 0].expand(n).clone()
     # labels padded by one voxel of _OUTSIDE, so a clamped lookup also tells in-grid or not
     padded = torch.nn.functional.pad(labels, (1, 1, 1, 1, 1, 1), value=_OUTSIDE).reshape(-1)
     strides = torch.tensor(
-        [(grid.shape[1] + 2) * (grid.shape[2] + 2), grid.shape[2] + 2, 1], device=device
+        [(labels.shape[1] + 2) * (labels.shape[2] + 2), labels.shape[2] + 2, 1], device=device
     )
 
     rays = _entry_possible(origin, unit, shape).nonzero().squeeze(1)
@@ -163,6 +152,8 @@ def cast_rays(
         label = padded[index]
         inside = label != _OUTSIDE
         update = inside & alive
+        if visited is not None:
+            visited[index[update]] = True
         # the axis crossed next (the voxel's exit), with the reference's tie-break
         tx, ty, tz = t_max.unbind(-1)
         axis = torch.where(tx < ty, torch.where(tx < tz, 0, 2), torch.where(ty < tz, 1, 2))
@@ -179,23 +170,72 @@ def cast_rays(
                 break
             if live < 0.75 * alive.numel():
                 flush(~alive)
-                rays, voxel, step, t_max, t_delta, was_inside, last_t, last_label, alive = (
-                    t[alive]
-                    for t in (
-                        rays,
-                        voxel,
-                        step,
-                        t_max,
-                        t_delta,
-                        was_inside,
-                        last_t,
-                        last_label,
-                        alive,
-                    )
+                state = (rays, voxel, step, t_max, t_delta, was_inside, last_t, last_label)
+                rays, voxel, step, t_max, t_delta, was_inside, last_t, last_label = (
+                    t[alive] for t in state
                 )
+                alive = alive[alive]
     flush(torch.ones_like(alive))
+    return distance, hit
+
+
+@typechecked
+def cast_rays(
+    labels: Int[Tensor, "X Y Z"],
+    origins: Float[Tensor, "K 3"],
+    directions: Float[Tensor, "R 3"],
+    grid: VoxelGrid,
+    free_label: int = FREE_LABEL,
+) -> tuple[Float[Tensor, " KR"], Int[Tensor, " KR"]]:
+    """Cast every direction from every origin through a label grid; first hits.
+
+    Args:
+        labels: ``(X, Y, Z)`` integer labels on ``grid`` (any value but ``free_label``
+            is occupied).
+        origins: ``(K, 3)`` ray origins in metres (grid frame); may lie outside the grid.
+        directions: ``(R, 3)`` ray directions (any non-zero length).
+        grid: the voxel grid of ``labels``.
+        free_label: the empty label.
+
+    Returns:
+        ``hit_distance (K R,)`` float32 metres along the ray (origin-major: ray
+        ``k R + r``; negative, ``-voxel_size``, where the ray never enters the grid) and
+        ``hit_label (K R,)`` int64 (usually ``free_label`` where nothing is hit; see the
+        module docstring for rays that never enter).
+    """
+    _check_grid_labels(labels, grid)
+    if origins.shape[0] == 0:
+        raise ValueError("origins: need at least one origin, got K = 0")
+    k, r = origins.shape[0], directions.shape[0]
+    o64 = origins.to(device=labels.device, dtype=torch.float64)
+    start, unit, metres = _voxel_rays(
+        o64.repeat_interleave(r, 0), directions.to(labels.device).repeat(k, 1), grid
+    )
+    distance, hit = _march(labels.long(), start, unit, free_label)
     # float32 voxel-unit distances scaled in float32, as the reference does
     return distance.float() * metres.float(), hit
 
 
-__all__ = ["MAX_STEPS", "cast_rays", "generate_lidar_rays"]
+@typechecked
+def observed_voxels(
+    labels: Int[Tensor, "X Y Z"],
+    origins: Float[Tensor, "N 3"],
+    directions: Float[Tensor, "N 3"],
+    grid: VoxelGrid,
+    free_label: int = FREE_LABEL,
+) -> Bool[Tensor, "X Y Z"]:
+    """Voxels seen along rays: every voxel ray i (from ``origins[i]`` along
+    ``directions[i]``, paired) passes through, up to and including its first occupied
+    voxel, as Occ3D defines its camera and LiDAR visibility masks. Same traversal rules as
+    :func:`cast_rays`."""
+    _check_grid_labels(labels, grid)
+    if origins.shape[0] == 0:
+        return torch.zeros(grid.shape, dtype=torch.bool, device=labels.device)
+    start, unit, _ = _voxel_rays(origins.to(labels.device), directions, grid)
+    x, y, z = grid.shape
+    visited = torch.zeros((x + 2) * (y + 2) * (z + 2), dtype=torch.bool, device=labels.device)
+    _march(labels.long(), start, unit, free_label, visited)
+    return visited.view(x + 2, y + 2, z + 2)[1:-1, 1:-1, 1:-1].clone()
+
+
+__all__ = ["MAX_STEPS", "cast_rays", "generate_lidar_rays", "observed_voxels"]
