@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dego.grid import VoxelGrid
-from dego.raycast import MAX_STEPS, cast_rays, generate_lidar_rays
+from dego.raycast import MAX_STEPS, cast_rays, generate_lidar_rays, observed_voxels
 from tests.ray_reference import (
     REFERENCE_MAX_STEPS,
     cast_all,
@@ -478,3 +478,20 @@ def test_cpu_and_device_agree(device: torch.device) -> None:
     d_dev, l_dev = cast_rays(labels.to(device), origins.to(device), rays.to(device), grid)
     assert d_dev.device.type == device.type
     assert torch.equal(d_dev.cpu(), d_cpu) and torch.equal(l_dev.cpu(), l_cpu)
+
+
+def test_observed_voxels_stop_at_and_include_the_first_occupied_voxel() -> None:
+    grid = VoxelGrid((0.0, 0.0, 0.0), (4.0, 2.0, 1.0), 1.0)  # (4, 2, 1)
+    labels = torch.full(grid.shape, 17, dtype=torch.long)
+    labels[2, 0, 0] = 4
+    origins = torch.tensor([[0.5, 0.5, 0.5], [0.5, 1.5, 0.5], [9.0, 9.0, 9.0]])
+    directions = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    seen = observed_voxels(labels, origins, directions, grid)
+    expected = torch.zeros(grid.shape, dtype=torch.bool)
+    expected[:3, 0, 0] = True  # up to and including the hit; nothing behind it
+    expected[:, 1, 0] = True  # a ray through free space sees its whole row
+    assert torch.equal(seen, expected)
+    empty = observed_voxels(labels, origins[:0], directions[:0], grid)
+    assert empty.shape == grid.shape and not bool(empty.any())
+    with pytest.raises(ValueError, match="labels"):
+        observed_voxels(labels[:2], origins, directions, grid)
