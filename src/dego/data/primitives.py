@@ -133,7 +133,8 @@ class Primitives:
 
     def signed_distance(self, owner: Tensor, points: Tensor) -> Tensor:
         """``(M,)`` signed distance of ``points[m]`` to solid ``owner[m]`` (negative
-        inside; the ellipsoid's is a bound, exact on its surface)."""
+        inside). The ellipsoid's is approximate: exact on its surface, a lower bound
+        outside, only its sign is exact inside."""
         q = self._local(owner, points)
         size, kind = self.sizes[owner], self.kinds[owner]
         # box

@@ -10,7 +10,8 @@ frame's ego coordinates with camera and LiDAR visibility masks, and the poses.
 
 Label conventions: Occ3D-nuScenes (17 = free). Riders carry the label of their bicycle
 or motorcycle (as nuScenes boxes include the rider). Pixels that hit nothing (sky) have
-depth 0 and semantics 17.
+depth 0 and semantics 17 (pseudo-label noise may break that pairing at sky boundaries,
+as real pseudo labels do).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import math
 import torch
 from torch import Tensor
 
+from dego._checks import check_int, check_positive
 from dego.classes import FREE_LABEL, PALETTE, Occ3DLabel
 from dego.data.primitives import BOX, CYLINDER, ELLIPSOID, Primitives, axis_to_matrix, yaw_matrix
 from dego.grid import VoxelGrid
@@ -42,6 +44,13 @@ CAMERAS = (
 # nuScenes intrinsics after DeGO's resize (0.44) and top crop (140 px) to 256 x 704
 _BASE_SIZE, _BASE_FOCAL, _BASE_CENTRE = (256, 704), 557.0, (352.0, 58.0)
 _SKY = (0.62, 0.78, 0.95)
+_VEHICLE_LENGTHS = {
+    "car": 4.5,
+    "truck": 7.5,
+    "bus": 11.5,
+    "trailer": 8.9,
+    "construction_vehicle": 6.0,
+}
 _VOXEL_MARGIN = 0.25  # a voxel is occupied when a solid comes within 0.25 voxel of its centre
 
 
@@ -141,23 +150,27 @@ class SyntheticScene:
         label_noise: float = 0.0,
         depth_noise: float = 0.0,
     ) -> None:
+        check_int("seed", seed)
         for name, value, low in [
             ("num_frames", num_frames, 1),
             ("num_vehicles", num_vehicles, 5),
             ("num_pedestrians", num_pedestrians, 1),
             ("num_cyclists", num_cyclists, 2),
         ]:
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
-        if len(image_size) != 2 or min(image_size) < 1:
-            raise ValueError(f"image_size: expected (H, W) >= 1, got {image_size!r}")
-        for name, value in [("frame_dt", frame_dt), ("ego_speed", ego_speed)]:
-            if not math.isfinite(value) or value < 0 or (name == "frame_dt" and value == 0):
-                raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
-        if not 0 <= label_noise <= 1 or not 0 <= depth_noise < 1:
-            raise ValueError(
-                f"label_noise, depth_noise: expected [0, 1], got {label_noise}, {depth_noise}"
-            )
+            check_int(name, value, low)
+        if len(image_size) != 2:
+            raise ValueError(f"image_size: expected (H, W), got {image_size!r}")
+        for value in image_size:
+            check_int("image_size", value, 1)
+        check_positive("frame_dt", frame_dt)
+        if isinstance(ego_speed, bool) or not math.isfinite(ego_speed) or ego_speed < 0:
+            raise ValueError(f"ego_speed: expected a finite number >= 0, got {ego_speed!r}")
+        if not 0 <= label_noise <= 1:
+            raise ValueError(f"label_noise: expected a probability in [0, 1], got {label_noise!r}")
+        if not 0 <= depth_noise < 1:
+            raise ValueError(f"depth_noise: expected a number in [0, 1), got {depth_noise!r}")
+        if grid is not None and not isinstance(grid, VoxelGrid):
+            raise ValueError(f"grid: expected a VoxelGrid, got {type(grid).__name__}")
         self.seed, self.grid = seed, VoxelGrid.occ3d() if grid is None else grid
         self.frame_dt, self.image_size, self.ego_speed = frame_dt, tuple(image_size), ego_speed
         self.label_noise, self.depth_noise = label_noise, depth_noise
@@ -282,6 +295,7 @@ class SyntheticScene:
             "trailer": L.TRAILER,
             "construction_vehicle": L.CONSTRUCTION_VEHICLE,
         }
+        taken: dict[float, list[tuple[float, float]]] = {}  # parked intervals per lane
         for i in range(vehicles):
             kind = vehicle_types[i] if i < len(vehicle_types) else ("car", "truck")[i % 2]
             parked = kind in ("trailer", "construction_vehicle") or self._rand(()) < 0.4
@@ -292,8 +306,17 @@ class SyntheticScene:
             else:
                 y, heading, speed = 3.5, math.pi, self._uniform(4, 11)
             x = self._uniform(-36, 36)
-            if abs(x) < 8 and (parked or y == 0.0):
-                x += 16 * (1 if x >= 0 else -1)  # keep the ego's surroundings clear
+            if parked:
+                x = self._parking_spot(y, _VEHICLE_LENGTHS[kind], taken)
+            elif y == 0.0:  # the ego's lane: only pull away from the ego, never close in
+                ahead = self._rand(()) < 0.7
+                x = (1 if ahead else -1) * self._uniform(15, 36)
+                low = min(self.ego_speed, max(self.ego_speed - 2, 3.0))
+                speed = (
+                    self._uniform(self.ego_speed, self.ego_speed + 6)
+                    if ahead
+                    else self._uniform(low, self.ego_speed)
+                )
             agents.append(
                 _Agent(kind, (x, y), heading, speed, labels[kind], 0.0, self._uniform(0.6, 1.0))
             )
@@ -331,6 +354,22 @@ class SyntheticScene:
                 )
             )
         return agents
+
+    def _parking_spot(
+        self, lane: float, length: float, taken: dict[float, list[tuple[float, float]]]
+    ) -> float:
+        """A parking position in ``lane`` clear of the ego (|x| > 8 m), of the crossing and
+        its cones and barriers, and of the vehicles already parked there."""
+        cx, intervals = self.crossing_x, taken.setdefault(lane, [])
+        for _ in range(200):
+            x = self._uniform(-38, 38)
+            low, high = x - length / 2 - 0.8, x + length / 2 + 0.8
+            clear = high < cx - 12 or low > cx + 9
+            clear &= high < -8 or low > 8
+            if clear and all(high < a or low > b for a, b in intervals):
+                intervals.append((low, high))
+                return x
+        return -60.0  # the street is full: park out of sight
 
     # -- agents at a time -------------------------------------------------------------
     @staticmethod
@@ -494,7 +533,7 @@ class SyntheticScene:
     # -- frames -----------------------------------------------------------------------
     def frame(self, offset: int) -> SyntheticFrame:
         """The frame at integer ``offset`` (one of ``self.offsets``)."""
-        if offset not in self.offsets:
+        if isinstance(offset, bool) or not isinstance(offset, int) or offset not in self.offsets:
             raise ValueError(f"offset: expected one of {self.offsets}, got {offset!r}")
         time = offset * self.frame_dt
         ego_pose = self.ego_pose(time)
