@@ -244,11 +244,11 @@ def _corrupt(kind: str, path: Path, payload: bytes) -> None:
     [
         ("truncated", "not a readable .npz"),
         ("truncated_tail", "not a readable .npz"),
-        ("garbage", "not a readable .npz"),
-        ("empty", "not a readable .npz"),
-        ("npy", "not an .npz archive"),
-        ("pickle", "not a readable .npz"),
-        ("flipped_byte", "not a readable .npz"),
+        ("garbage", "is not a zip archive"),
+        ("empty", "is empty"),
+        ("npy", "holds a single .npy array"),
+        ("pickle", "allow_pickle=False"),
+        ("flipped_byte", "cannot read array 'features'"),
         ("no_features", r"missing array\(s\) \['features'\]"),
         ("no_metadata", "missing array"),
         ("wrong_dtype", "stored dtype float32"),
@@ -257,7 +257,7 @@ def _corrupt(kind: str, path: Path, payload: bytes) -> None:
         ("other_key", "holds sample 't'"),
         ("other_camera", "camera 5"),
         ("future_version", "format_version 2"),
-        ("not_a_zip_member", "not a readable .npz"),
+        ("not_a_zip_member", "cannot read array 'features'"),
     ],
 )
 def test_corrupted_entries_raise_value_error_naming_the_path(

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import uuid
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from dego._checks import check_int
+from dego._npz import read_npz, write_npz
 from dego._typing import typechecked
 from dego.classes import NUM_CLASSES
 
@@ -42,7 +42,6 @@ LABELS_FILENAME = "labels.npz"
 """Name of the per-sample file in ``gts/<scene>/<token>/``."""
 
 _KEYS = ("semantics", "mask_lidar", "mask_camera")  # the order of the real files
-_ZIP_MAGIC, _EMPTY_ZIP_MAGIC, _NPY_MAGIC = b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY"
 _TORCH_WIDE_UNSIGNED = (torch.uint16, torch.uint32, torch.uint64)  # no min/max on CPU
 
 PathLike = str | os.PathLike[str]
@@ -271,51 +270,7 @@ def _labels_from_arrays(
 
 
 def _read_npz_arrays(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
-    """The arrays ``keys`` of the ``.npz`` at ``path`` (other members are not read).
-
-    Raises ValueError naming the path (and the key, for a missing or unreadable member).
-    """
-    try:
-        # Our own file handle: np.load leaks its handle when the zip directory is corrupt.
-        with path.open("rb") as file:
-            # np.load reports any unknown content as refused pickle data: say what it is.
-            magic = file.read(6)
-            file.seek(0)
-            if not magic.startswith((_ZIP_MAGIC, _EMPTY_ZIP_MAGIC)):
-                what = "is not a zip archive"
-                if not magic:
-                    what = "is empty"
-                elif magic == _NPY_MAGIC:
-                    what = "holds a single .npy array"
-                raise ValueError(
-                    f"{path}: {what}; expected an .npz archive with arrays {list(keys)}"
-                )
-            try:
-                loaded = np.load(file, allow_pickle=False)
-            except (PermissionError, MemoryError):
-                raise
-            except Exception as exc:  # zipfile errors of truncated or damaged archives
-                raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
-            if not isinstance(loaded, np.lib.npyio.NpzFile):  # pragma: no cover (magic checked)
-                raise ValueError(f"{path}: not an .npz archive")
-            with loaded as npz:
-                missing = [key for key in keys if key not in npz.files]
-                if missing:
-                    raise ValueError(
-                        f"{path}: missing array(s) {missing}; found {sorted(npz.files)}, "
-                        f"an Occ3D labels file holds {list(keys)}"
-                    )
-                arrays = {}
-                for key in keys:
-                    try:
-                        arrays[key] = npz[key]
-                    except (PermissionError, MemoryError):
-                        raise
-                    except Exception as exc:  # zlib/CRC errors, object arrays, bad headers
-                        raise ValueError(f"{path}: cannot read array {key!r} ({exc})") from exc
-                return arrays
-    except IsADirectoryError as exc:
-        raise FileNotFoundError(f"{path}: is a directory, not an Occ3D labels file") from exc
+    return read_npz(path, keys, holds=f"an Occ3D labels file with arrays {list(keys)}")
 
 
 @typechecked
@@ -378,19 +333,7 @@ def save_occ3d_labels(path: PathLike, labels: Occ3DLabels, *, compressed: bool =
         "mask_lidar": np.ascontiguousarray(labels.mask_lidar.cpu().numpy().astype(np.uint8)),
         "mask_camera": np.ascontiguousarray(labels.mask_camera.cpu().numpy().astype(np.uint8)),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # os.open honours the umask, unlike tempfile.mkstemp's 0600.
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as file:
-            (np.savez_compressed if compressed else np.savez)(file, **arrays)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    write_npz(path, arrays, compressed=compressed)
     return path
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import re
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +11,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from dego._npz import read_npz, write_npz
 from dego._typing import typechecked
 
 FORMAT_VERSION = 1
@@ -122,27 +122,14 @@ class TeacherFeatureCache:
                 f"(+-{limit:.6g}) and would be stored as inf; rescale them or use "
                 "TeacherFeatureCache(..., dtype=torch.float32)"
             )
-        self.root.mkdir(parents=True, exist_ok=True)
-        # A leading '.' keeps temporary names disjoint from entry names (ids cannot start
-        # with '.'); os.open honours the umask, unlike tempfile.mkstemp's 0600.
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        try:
-            with os.fdopen(fd, "wb") as file:
-                np.savez(
-                    file,
-                    features=np.ascontiguousarray(array.astype(self._np_dtype)),
-                    format_version=np.asarray(FORMAT_VERSION, dtype=np.int64),
-                    dtype=np.asarray(self._np_dtype.name),
-                    sample_id=np.asarray(sample_id),
-                    camera=np.asarray(camera, dtype=np.int64),
-                )
-                file.flush()
-                os.fsync(file.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        arrays = {
+            "features": np.ascontiguousarray(array.astype(self._np_dtype)),
+            "format_version": np.asarray(FORMAT_VERSION, dtype=np.int64),
+            "dtype": np.asarray(self._np_dtype.name),
+            "sample_id": np.asarray(sample_id),
+            "camera": np.asarray(camera, dtype=np.int64),
+        }
+        write_npz(path, arrays, compressed=False)
         return path
 
     @typechecked
@@ -178,7 +165,7 @@ class TeacherFeatureCache:
         path = self.path(sample_id, camera)
         if not path.is_file():
             raise FileNotFoundError(self._missing(sample_id, camera, path))
-        arrays = _read_npz(path)
+        arrays = read_npz(path, holds="a teacher feature cache entry")
         features = self._validate(path, arrays, sample_id, camera, expected_shape)
         if not features.flags.writeable:
             features = features.copy()
@@ -235,22 +222,6 @@ class TeacherFeatureCache:
 
 def _scalar_str(array: np.ndarray) -> str | None:
     return str(array[()]) if array.shape == () and array.dtype.kind == "U" else None
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    """Every array of the ``.npz`` at ``path``; anything unreadable is a ValueError."""
-    try:
-        # Our own file handle: np.load leaks its handle when the zip directory is corrupt.
-        with path.open("rb") as file:
-            loaded = np.load(file, allow_pickle=False)
-            if not isinstance(loaded, np.lib.npyio.NpzFile):
-                raise ValueError(f"a {type(loaded).__name__}, not an .npz archive")
-            with loaded as npz:
-                return {name: npz[name] for name in npz.files}
-    except (PermissionError, MemoryError):
-        raise
-    except Exception as exc:  # zipfile, zlib, numpy header and EOF errors of corrupt files
-        raise ValueError(f"{path}: not a readable .npz teacher cache entry ({exc})") from exc
 
 
 __all__ = ["FORMAT_VERSION", "TeacherFeatureCache"]
