@@ -175,16 +175,19 @@ class SyntheticScene:
         self.frame_dt, self.image_size, self.ego_speed = frame_dt, tuple(image_size), ego_speed
         self.label_noise, self.depth_noise = label_noise, depth_noise
         self.offsets = tuple(range(-(num_frames // 2), (num_frames - 1) // 2 + 1))
-        g = torch.Generator().manual_seed(seed)
-        self._rand = lambda *shape: torch.rand(*shape, generator=g)
-        self.crossing_x = float(12 + 10 * self._rand(()))
+        self._generator = torch.Generator().manual_seed(seed)
+        self.crossing_x = self._uniform(12, 22)
         self._static = self._build_static()
         self._agents = self._build_agents(num_vehicles, num_pedestrians, num_cyclists)
         self._lidar_rays = generate_lidar_rays()
 
     # -- the world --------------------------------------------------------------------
+    def _rand(self) -> float:
+        """The next number in [0, 1) of the scene's generator."""
+        return float(torch.rand((), generator=self._generator))
+
     def _uniform(self, low: float, high: float) -> float:
-        return float(low + (high - low) * self._rand(()))
+        return low + (high - low) * self._rand()
 
     def _build_static(self) -> Primitives:
         cx = self.crossing_x
@@ -199,13 +202,12 @@ class SyntheticScene:
             # a flat parking area beside the crossing (other_flat)
             _boxes([cx + 13, -16, -0.45], [14, 10, 1.0], 0, L.OTHER_FLAT),
         ]
-        sidewalk_y = (-6.0, 7.5)
-        for y in sidewalk_y:  # raised sidewalks, interrupted by the crossing
-            before, after = cx - 4 - (-80), 80 - (cx + 4)
+        for y in (-6.0, 7.5):  # raised sidewalks from x = -80 to 80, cut by the crossing
+            west, east = (-80.0, cx - 4), (cx + 4, 80.0)
             parts.append(
                 _boxes(
-                    [[(-80 + cx - 4) / 2, y, -0.425], [(cx + 4 + 80) / 2, y, -0.425]],
-                    [[before, 3.0, 1.15], [after, 3.0, 1.15]],
+                    [[sum(west) / 2, y, -0.425], [sum(east) / 2, y, -0.425]],
+                    [[west[1] - west[0], 3.0, 1.15], [east[1] - east[0], 3.0, 1.15]],
                     0,
                     L.SIDEWALK,
                 )
@@ -214,7 +216,7 @@ class SyntheticScene:
             x = -75.0
             while x < 75:
                 length = self._uniform(10, 22)
-                if abs(x + length / 2 - cx) > length / 2 + 6 and self._rand(()) < 0.85:
+                if abs(x + length / 2 - cx) > length / 2 + 6 and self._rand() < 0.85:
                     depth, height = self._uniform(8, 14), self._uniform(4, 14)
                     y = side * (11.5 + depth / 2) + (1.5 if side > 0 else 0)
                     parts.append(
@@ -229,7 +231,7 @@ class SyntheticScene:
                 x += length + self._uniform(1, 6)
         for side in (-1, 1):  # trees on the terrain strips: trunk and crown
             for x in torch.arange(-70.0, 70.0, 9.0).tolist():
-                if abs(x - cx) < 7 or self._rand(()) < 0.3:
+                if abs(x - cx) < 7 or self._rand() < 0.3:
                     continue
                 y = side * 9.0 + (0.75 if side > 0 else 0) + self._uniform(-0.4, 0.4)
                 x = x + self._uniform(-2, 2)
@@ -258,7 +260,7 @@ class SyntheticScene:
         # barriers along the crossing's corners, traffic cones by the parking lane
         parts.append(
             _boxes(
-                [[cx - 6, 5.2 + i * 0.0, 0.45] for i in range(1)] + [[cx + 6, -3.9, 0.45]],
+                [[cx - 6, 5.2, 0.45], [cx + 6, -3.9, 0.45]],
                 [[2.0, 0.35, 0.9], [2.0, 0.35, 0.9]],
                 [0.0, 0.0],
                 L.BARRIER,
@@ -298,10 +300,10 @@ class SyntheticScene:
         taken: dict[float, list[tuple[float, float]]] = {}  # parked intervals per lane
         for i in range(vehicles):
             kind = vehicle_types[i] if i < len(vehicle_types) else ("car", "truck")[i % 2]
-            parked = kind in ("trailer", "construction_vehicle") or self._rand(()) < 0.4
+            parked = kind in ("trailer", "construction_vehicle") or self._rand() < 0.4
             if parked:  # the parking lane on the right, or on the far side of the road
                 y, heading, speed = (-3.4 if i % 2 else 4.6), 0.0, 0.0
-            elif self._rand(()) < 0.5:
+            elif self._rand() < 0.5:
                 y, heading, speed = 0.0, 0.0, self._uniform(4, 11)
             else:
                 y, heading, speed = 3.5, math.pi, self._uniform(4, 11)
@@ -309,7 +311,7 @@ class SyntheticScene:
             if parked:
                 x = self._parking_spot(y, _VEHICLE_LENGTHS[kind], taken)
             elif y == 0.0:  # the ego's lane: only pull away from the ego, never close in
-                ahead = self._rand(()) < 0.7
+                ahead = self._rand() < 0.7
                 x = (1 if ahead else -1) * self._uniform(15, 36)
                 low = min(self.ego_speed, max(self.ego_speed - 2, 3.0))
                 speed = (
@@ -323,11 +325,11 @@ class SyntheticScene:
         for i in range(pedestrians):
             if i % 3 == 2:  # crossing the street on the crosswalk
                 position = (self.crossing_x + self._uniform(-2, 2), self._uniform(-5, 5))
-                heading = math.pi / 2 * (1 if self._rand(()) < 0.5 else -1)
+                heading = math.pi / 2 * (1 if self._rand() < 0.5 else -1)
             else:
                 side = -6.0 if i % 2 else 7.5
                 position = (self._uniform(-35, 35), side + self._uniform(-0.8, 0.8))
-                heading = 0.0 if self._rand(()) < 0.5 else math.pi
+                heading = 0.0 if self._rand() < 0.5 else math.pi
             agents.append(
                 _Agent(
                     "pedestrian",
