@@ -205,13 +205,20 @@ class DecoupledDeformation(nn.Module):
 
     Args:
         feature_dim: C_g, channels of the per-Gaussian latent features.
-        pos_levels, time_levels: L_p (6) and L_t (4) of the positional encodings.
-        time_dim: C_t (32). hidden_dim: D_h (256). depth: feature-net layers (6).
+        pos_levels: L_p (6), frequency levels of the position encoding.
+        time_levels: L_t (4), frequency levels of the time encoding.
+        time_dim: C_t (32), the time-embedding width.
+        hidden_dim: D_h (256), the feature-net width.
+        depth: feature-net layers (6).
         head_hidden: hidden width of the 2-layer heads (256).
         preset: ``"paper"`` or ``"official"``.
         time_scale: times are divided by it (e.g. the clip's largest offset).
         pos_scale: positions are divided by it before encoding (``None``: preset default).
         loss_weights: default :class:`DeformationLossWeights` of :func:`deformation_loss`.
+        fixed_mask: ``None`` (default): m is learned. A number in [0, 1]: m is that constant
+            for every Gaussian and time and the mask head is unused; ``0.0`` gives the
+            rigid-only baseline (position offsets only, as in GaussianFlowOcc), ``1.0`` a
+            nonrigid-only model.
         chunk_rows: about how many (Gaussian, time) rows the feature net and heads process
             at a time (Gaussians are chunked, every chunk covers all T); a speed knob
             only: results agree to floating-point rounding. ``None``: 4096 on CPU, where
@@ -232,6 +239,7 @@ class DecoupledDeformation(nn.Module):
         time_scale: float = 1.0,
         pos_scale: float | None = None,
         loss_weights: DeformationLossWeights | None = None,
+        fixed_mask: float | None = None,
         chunk_rows: int | None = None,
     ) -> None:
         super().__init__()
@@ -253,6 +261,12 @@ class DecoupledDeformation(nn.Module):
             pos_scale = max(map(abs, (*grid.lower, *grid.upper))) if preset == "paper" else 1.0
         check_positive("time_scale", time_scale)
         check_positive("pos_scale", pos_scale)
+        if fixed_mask is not None and (
+            isinstance(fixed_mask, bool)
+            or not isinstance(fixed_mask, int | float)
+            or not 0 <= fixed_mask <= 1
+        ):
+            raise ValueError(f"fixed_mask: expected None or a number in [0, 1], got {fixed_mask!r}")
         if loss_weights is not None and not isinstance(loss_weights, DeformationLossWeights):
             raise TypeError(
                 f"loss_weights: expected DeformationLossWeights, got {type(loss_weights).__name__}"
@@ -263,6 +277,7 @@ class DecoupledDeformation(nn.Module):
         self.time_scale, self.pos_scale = float(time_scale), float(pos_scale)
         self.loss_weights = loss_weights or DeformationLossWeights()
         self.chunk_rows = chunk_rows
+        self.fixed_mask = None if fixed_mask is None else float(fixed_mask)
 
         static_dim = feature_dim + 3 * (2 * pos_levels + 1)
         self.time_embedding = _mlp(2 * time_levels + 1, time_dim, time_dim, 2)
@@ -369,7 +384,7 @@ class DecoupledDeformation(nn.Module):
         time_part = self.input_time(embedding)[:, :, None]  # (B, T, 1, D_h)
         t = times.shape[1]
         heads = dict(self.heads)
-        if self.preset == "official":
+        if self.preset == "official" and self.fixed_mask is None:
             heads["mask"] = self.mask_head
         # All T at once, over bounded chunks of Gaussians: the arithmetic of one pass,
         # but on a CPU each chunk's activations stay in cache (1.5-2x faster fwd + bwd).
@@ -389,9 +404,15 @@ class DecoupledDeformation(nn.Module):
             for name, parts in outputs.items()
         }
         if self.preset == "paper":
-            mask = torch.sigmoid(self.mask_head(static)).squeeze(-1)  # (B, N)
+            if self.fixed_mask is None:
+                mask = torch.sigmoid(self.mask_head(static)).squeeze(-1)  # (B, N)
+            else:
+                mask = static.new_full((b, n), self.fixed_mask)
             return self._apply_paper(gaussians, raw, mask)
-        mask = torch.sigmoid(raw.pop("mask")).squeeze(-1)  # (B, T, N)
+        if self.fixed_mask is None:
+            mask = torch.sigmoid(raw.pop("mask")).squeeze(-1)  # (B, T, N)
+        else:
+            mask = static.new_full((b, t, n), self.fixed_mask)
         return self._apply_official(gaussians, raw, mask)
 
     def _output(
@@ -463,6 +484,7 @@ class DecoupledDeformation(nn.Module):
         return (
             f"feature_dim={self.feature_dim}, preset={self.preset!r}, "
             f"time_scale={self.time_scale}, pos_scale={self.pos_scale}"
+            + ("" if self.fixed_mask is None else f", fixed_mask={self.fixed_mask}")
         )
 
 

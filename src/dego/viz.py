@@ -345,7 +345,8 @@ def plot_occupancy_3d(
         title: axes title.
         max_voxels: the most voxels drawn (speed), an int >= 1.
         marker_size: scatter marker area in points^2; ``None`` sizes markers to the voxels.
-        elev, azim: the view (degrees); the default looks forward (+x) from behind and
+        elev: view elevation (degrees).
+        azim: view azimuth (degrees); the defaults look forward (+x) from behind and
             above the ego, with +y on the left.
         shade: draw voxels with an occupied voxel right above them (seen only from the
             side) at 70% brightness, so that heights read; voxels whose top is open keep
@@ -497,7 +498,8 @@ def camera_panels(
         camera_names: V column titles; ``None``: "camera 0", "camera 1", ...
         depth_cmap: matplotlib colormap name for depth (default: near red, far blue).
         legend: with semantics, add a legend of the classes present.
-        free_label, free_color: the empty-space label and its colour.
+        free_label: the empty-space label.
+        free_color: its colour.
         panel_width: width of one panel in inches.
 
     Returns:

@@ -52,8 +52,10 @@ class Primitives:
 
     Attributes:
         kinds: ``(P,)`` int64, :data:`BOX`, :data:`CYLINDER` or :data:`ELLIPSOID`.
-        centers: ``(P, 3)``. rotations: ``(P, 3, 3)`` local -> world (columns = local axes).
-        sizes: ``(P, 3)`` half extents (see the kinds). labels: ``(P,)`` int64.
+        centers: ``(P, 3)``.
+        rotations: ``(P, 3, 3)`` local -> world (columns = local axes).
+        sizes: ``(P, 3)`` half extents (see the kinds).
+        labels: ``(P,)`` int64.
         shades: ``(P,)`` brightness factors for rendering, in (0, 1].
     """
 

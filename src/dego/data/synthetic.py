@@ -41,6 +41,8 @@ CAMERAS = (
     ("CAM_BACK_LEFT", (1.05, 0.50, 1.50), 110.0),
     ("CAM_BACK_RIGHT", (1.05, -0.50, 1.50), -110.0),
 )
+"""The six cameras of :class:`SyntheticScene`, in image order: ``(name, (x, y, z) in the ego
+frame in metres, yaw in degrees)``, a nuScenes-like surround rig."""
 # nuScenes intrinsics after DeGO's resize (0.44) and top crop (140 px) to 256 x 704
 _BASE_SIZE, _BASE_FOCAL, _BASE_CENTRE = (256, 704), 557.0, (352.0, 58.0)
 _SKY = (0.62, 0.78, 0.95)
@@ -59,16 +61,19 @@ class SyntheticFrame:
     """One frame of a :class:`SyntheticScene`.
 
     Attributes:
-        time: seconds from the reference frame. offset: the frame offset (integer).
+        time: seconds from the reference frame.
+        offset: the frame offset (integer).
         images: ``(V, 3, H, W)`` float32 RGB in [0, 1] (per-class colours, shaded).
         depth: ``(V, H, W)`` float32 pseudo depth (camera z, metres; 0 where nothing is hit).
         semantics: ``(V, H, W)`` int64 pseudo labels (17 where nothing is hit).
         world_to_cam: ``(V, 4, 4)``: world (the reference ego frame) to OpenCV camera.
-        intrinsics: ``(V, 3, 3)``. ego_pose: ``(4, 4)`` ego -> world at this frame.
+        intrinsics: ``(V, 3, 3)`` pinhole ``K``.
+        ego_pose: ``(4, 4)`` ego -> world at this frame.
         lidar_origin: ``(3,)`` the LiDAR in this frame's ego coordinates.
         occupancy: ``(X, Y, Z)`` uint8 Occ3D labels in this frame's ego coordinates.
-        mask_camera, mask_lidar: ``(X, Y, Z)`` bool: voxels seen by camera / LiDAR rays up
-            to and including the first occupied voxel.
+        mask_camera: ``(X, Y, Z)`` bool: voxels seen by camera rays, up to and including
+            the first occupied voxel.
+        mask_lidar: ``(X, Y, Z)`` bool: the same for the LiDAR rays.
     """
 
     time: float
@@ -127,12 +132,15 @@ class SyntheticScene:
         num_frames: frames of the clip; offsets ``-(n // 2) .. (n - 1) // 2``, 0 = reference.
         frame_dt: seconds between frames (nuScenes keyframes: 0.5).
         image_size: ``(H, W)`` of the six camera images.
-        num_vehicles, num_pedestrians, num_cyclists: agents (at least one of each vehicle
-            type, pedestrian, bicycle and motorcycle is kept so every class occurs).
+        num_vehicles: vehicles (parked or moving), >= 5: the first five are a car, a truck,
+            a bus, a trailer and a construction vehicle, so every vehicle class occurs.
+        num_pedestrians: walking pedestrians, >= 1.
+        num_cyclists: riders, >= 2, alternately on a bicycle and on a motorcycle.
         ego_speed: the ego's speed along +x (m/s).
-        label_noise, depth_noise: pseudo-label noise: probability that a pixel on a class
-            boundary takes a neighbour's label, and the relative depth noise at 10 m (it
-            grows linearly with distance). 0 (default) gives exact labels.
+        label_noise: pseudo-label noise: the probability that a pixel on a class boundary
+            takes a neighbour's label. 0 (default) gives exact labels.
+        depth_noise: pseudo-depth noise: the relative depth error at 10 m (it grows
+            linearly with distance). 0 (default) gives exact depth.
     """
 
     def __init__(

@@ -64,8 +64,9 @@ def lidar_origins(
     ``round(linspace(0, n - 1, max_origins))``.
 
     Args:
-        ego2global, lidar2ego: per-frame poses of the scene's keyframes in temporal order,
+        ego2global: per-frame ego poses of the scene's keyframes in temporal order,
             ``(F, 4, 4)`` or ``(F, 7)`` (translation, then wxyz quaternion).
+        lidar2ego: per-frame LiDAR extrinsics, same layout and order.
         reference_index: the evaluated frame.
 
     Returns:
@@ -103,7 +104,8 @@ class RayIoUReport:
         per_class: ``(len(thresholds), C)`` float64 IoU of every label (free included, NaN).
         at: RayIoU per threshold (nanmean over ``class_ids``).
         rayiou: mean of ``at`` (SparseOcc's nanmean over the whole array).
-        class_ids: the classes averaged. class_names: names of all C labels.
+        class_ids: the classes averaged.
+        class_names: names of all C labels.
     """
 
     thresholds: tuple[float, ...]
@@ -247,7 +249,8 @@ class RayIoU(CountingMetric):
         """Cast and score one sample.
 
         Args:
-            pred, gt: ``(X, Y, Z)`` integer label grids in ``0..C-1`` on the metric's grid.
+            pred: ``(X, Y, Z)`` integer predicted labels in ``0..C-1`` on the metric's grid.
+            gt: ``(X, Y, Z)`` integer ground-truth labels, same grid and range.
             origins: ``(K, 3)`` ray origins in metres (ego frame; :func:`lidar_origins`);
                 K >= 1. Origins outside the grid are allowed (their rays may never enter).
         """

@@ -164,11 +164,12 @@ def splat(
         features: ``(B, N, C)`` per-Gaussian features; defaults to ``gaussians.features``
             (none at all: C = 0, only depth and alpha are rendered).
         background: ``(C,)`` or ``(B, V, C)``, added as ``T_final * background`` (default 0).
-        near, far: cull Gaussians whose camera z is outside ``[near, far]``.
+        near: cull Gaussians whose camera z is below ``near``.
+        far: cull Gaussians whose camera z is above ``far``.
         eps2d: screen-space dilation added to the 2D covariance (pixels^2).
-        max_alpha, alpha_min, transmittance_min: per-pixel compositing rules: alpha =
-            min(max_alpha, o exp(-sigma)); a Gaussian with alpha < alpha_min (or sigma < 0)
-            is skipped; a pixel stops before the Gaussian that would take its
+        max_alpha: per-Gaussian alpha cap: alpha = min(max_alpha, o exp(-sigma)).
+        alpha_min: a Gaussian with alpha < alpha_min (or sigma < 0) is skipped at a pixel.
+        transmittance_min: a pixel stops before the Gaussian that would take its
             transmittance to transmittance_min or below.
         radius_sigma: screen radius ``ceil(radius_sigma * sqrt(lambda_max))`` that decides
             which tiles a Gaussian touches.

@@ -109,11 +109,14 @@ class FactorizedSpatioTemporalTeacher(nn.Module):
     num_heads=16, patch_size=14``.
 
     Args:
-        embed_dim: C. depth: number of (spatial, temporal) block pairs. num_heads: heads
-            per attention (``embed_dim / num_heads`` must be a multiple of 4 for 2-D RoPE).
+        embed_dim: C, the token width.
+        depth: number of (spatial, temporal) block pairs.
+        num_heads: heads per attention (``embed_dim / num_heads`` must be a multiple of 4
+            for 2-D RoPE).
         patch_size: square patch side in pixels.
         num_register_tokens: learned register tokens per image (VGGT: 4).
-        mlp_ratio: MLP width / C. rope_base: RoPE base frequency (VGGT: 100).
+        mlp_ratio: MLP width / C.
+        rope_base: RoPE base frequency (VGGT: 100).
         normalize: subtract the ImageNet mean and divide by its std (inputs in [0, 1]).
     """
 

@@ -1,0 +1,130 @@
+"""Learnable canonical Gaussians of a scene, initialised from pseudo depth."""
+
+from __future__ import annotations
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from dego._checks import check_int
+from dego.classes import FREE_LABEL
+from dego.demo.clip import DemoClip, backproject
+from dego.gaussians import GaussianSet
+
+NUM_OCCUPIED = FREE_LABEL  # labels 0..16 are occupied classes, 17 is free space
+_MIN_SCALE, _MAX_SCALE = 0.05, 2.0  # metres: bounds of the initial nearest-neighbour scales
+
+
+class GaussianSceneModel(nn.Module):
+    """Canonical (reference-time) Gaussians with semantic logits and latent features.
+
+    Parameters are stored unconstrained: ``log_scales``, ``opacity_logits`` and raw
+    ``quats`` (normalised when used). :meth:`gaussians` gives the ``(1, N)``
+    :class:`~dego.GaussianSet` whose features are the class probabilities over the 17
+    occupied Occ3D classes (free space is what the Gaussians leave transparent).
+
+    Args:
+        means: ``(N, 3)`` initial positions (world = reference ego frame).
+        scales: ``(N, 3)`` initial standard deviations.
+        latent_dim: channels of the latent features fed to the deformation network.
+        opacity: initial opacity of every Gaussian.
+        generator: seeds the small random semantic logits and latent features.
+    """
+
+    def __init__(
+        self,
+        means: Float[Tensor, "N 3"],
+        scales: Float[Tensor, "N 3"],
+        *,
+        latent_dim: int = 16,
+        opacity: float = 0.3,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        check_int("latent_dim", latent_dim, 0)
+        if not 0 < opacity < 1:
+            raise ValueError(f"opacity: expected a number in (0, 1), got {opacity!r}")
+        if means.ndim != 2 or means.shape[-1] != 3 or scales.shape != means.shape:
+            raise ValueError(
+                f"means, scales: expected two (N, 3) tensors, got {tuple(means.shape)} and "
+                f"{tuple(scales.shape)}"
+            )
+        n, kw = means.shape[0], {"dtype": means.dtype}
+
+        def small_normal(*shape: int) -> Tensor:
+            return 0.01 * torch.randn(*shape, generator=generator, **kw).to(means.device)
+
+        identity = torch.zeros(n, 4, **kw, device=means.device)
+        identity[:, 0] = 1
+        self.means = nn.Parameter(means.clone())
+        self.quats = nn.Parameter(identity)
+        self.log_scales = nn.Parameter(scales.log())
+        self.opacity_logits = nn.Parameter(
+            torch.full((n,), float(torch.logit(torch.tensor(opacity))), **kw, device=means.device)
+        )
+        self.semantic_logits = nn.Parameter(small_normal(n, NUM_OCCUPIED))
+        self.latent = nn.Parameter(10 * small_normal(n, latent_dim))
+
+    @classmethod
+    def from_clip(
+        cls,
+        clip: DemoClip,
+        num_gaussians: int,
+        *,
+        latent_dim: int = 16,
+        generator: torch.Generator | None = None,
+    ) -> GaussianSceneModel:
+        """Gaussians on the clip's pseudo-depth surfaces (the only geometry it is given).
+
+        ``num_gaussians`` supervised pixels of every frame and camera are drawn with
+        probability proportional to depth^2 (a pixel's footprint grows with depth^2, so the
+        draw is about uniform over the visible surface area) and lifted to 3D; each
+        Gaussian starts isotropic, its scale the mean distance to its 3 nearest neighbours.
+        Semantics start near uniform: the labels are learnt, not copied.
+        """
+        check_int("num_gaussians", num_gaussians, 1)
+        surface = clip.supervised & (clip.depth > 0)
+        points = backproject(clip.depth, clip.world_to_cam, clip.intrinsics)[surface]
+        if points.shape[0] < num_gaussians:
+            raise ValueError(
+                f"num_gaussians: the clip has only {points.shape[0]} surface pixels inside "
+                f"the grid, got num_gaussians={num_gaussians}"
+            )
+        weights = clip.depth[surface].square()
+        pick = torch.multinomial(weights.cpu(), num_gaussians, generator=generator)
+        means = points[pick.to(points.device)]
+        spacing = nearest_neighbour_distance(means, k=3).clamp(_MIN_SCALE, _MAX_SCALE)
+        return cls(
+            means,
+            spacing[:, None].expand(-1, 3),
+            latent_dim=latent_dim,
+            generator=generator,
+        )
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.means.shape[0]
+
+    def gaussians(self) -> GaussianSet:
+        """The canonical set, batch ``(1,)``, features = class probabilities ``(1, N, 17)``."""
+        return GaussianSet(
+            means=self.means[None],
+            quats=self.quats[None],
+            scales=self.log_scales.exp()[None],
+            opacities=torch.sigmoid(self.opacity_logits)[None],
+            features=torch.softmax(self.semantic_logits, -1)[None],
+        )
+
+
+def nearest_neighbour_distance(
+    points: Float[Tensor, "N 3"], k: int = 3, chunk: int = 2048
+) -> Float[Tensor, " N"]:
+    """Mean distance of each point to its ``k`` nearest other points (chunked ``cdist``)."""
+    k = min(k, points.shape[0] - 1)
+    if k < 1:
+        return points.new_ones(points.shape[0])
+    parts = []
+    for start in range(0, points.shape[0], chunk):
+        distances = torch.cdist(points[start : start + chunk], points)
+        parts.append(distances.topk(k + 1, largest=False).values[:, 1:].mean(-1))
+    return torch.cat(parts)

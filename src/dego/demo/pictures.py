@@ -1,0 +1,85 @@
+"""The demo's pictures: BEV prediction vs ground truth, one camera's renders, loss curves.
+
+Needs matplotlib (``pip install "dego[viz]"``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from jaxtyping import Int
+from torch import Tensor
+
+from dego.classes import FREE_LABEL
+from dego.demo.clip import DemoClip
+from dego.demo.fit import LOSS_TERMS, FitResult, gaussians_at, render
+from dego.viz import _new_figure, colorize_labels, compare_bev, save_figure
+
+CAMERA = 0  # CAM_FRONT
+
+
+def bev_picture(labels: Int[Tensor, "X Y Z"], clip: DemoClip, variant: str, path: Path) -> Path:
+    """Top-down prediction next to the ground truth."""
+    figure = compare_bev(
+        labels.cpu(),
+        clip.occupancy.cpu(),
+        grid=clip.grid,
+        titles=(f"{variant}: prediction", "ground truth"),
+    )
+    return save_figure(figure, path, dpi=80)
+
+
+@torch.no_grad()
+def camera_picture(result: FitResult, clip: DemoClip, path: Path, camera: int = CAMERA) -> Path:
+    """Pseudo labels vs the fitted Gaussians' render, depth and semantics, reference frame."""
+    index = clip.reference
+    gaussians, _ = gaussians_at(result.model, result.deformation, clip, index)
+    rendered = render(gaussians, clip, index)
+    probabilities = torch.cat([rendered.features[0], 1 - rendered.alpha[0][:, None]], 1)
+    semantics = probabilities.argmax(1)[camera].cpu()
+    depth = torch.where(rendered.alpha[0, camera] > 0.5, rendered.depth[0, camera], 0).cpu()
+    pseudo_depth = clip.depth[index, camera].cpu()
+    far = float(pseudo_depth.max().clamp_min(1))
+
+    figure = _new_figure((9.0, 3.6))
+    axes = figure.subplots(2, 2)
+    panels = [
+        (pseudo_depth, "pseudo depth", "depth"),
+        (depth, f"{result.variant}: rendered depth (alpha > 0.5)", "depth"),
+        (clip.semantics[index, camera].cpu(), "pseudo semantics", "labels"),
+        (semantics, f"{result.variant}: rendered semantics", "labels"),
+    ]
+    for ax, (image, title, kind) in zip(axes.flat, panels, strict=True):
+        if kind == "depth":
+            shown = ax.imshow(
+                torch.where(image > 0, image, float("nan")).numpy(),
+                cmap="turbo_r",
+                vmin=0,
+                vmax=far,
+            )
+            figure.colorbar(shown, ax=ax, shrink=0.8, label="m")
+        else:
+            ax.imshow(colorize_labels(image.clamp(0, FREE_LABEL)).numpy())
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+    return save_figure(figure, path, dpi=80)
+
+
+def loss_picture(results: list[FitResult], path: Path) -> Path:
+    """Every loss term of every variant against the iteration (log scale)."""
+    terms = [term for term in LOSS_TERMS if term != "total"]
+    figure = _new_figure((3.2 * len(terms), 2.8))
+    axes = figure.subplots(1, len(terms))
+    for ax, term in zip(axes, terms, strict=True):
+        for result in results:
+            values = torch.tensor(result.history[term])
+            window = max(1, len(values) // 20)  # a moving average: one frame per step is noisy
+            smooth = values.unfold(0, window, 1).mean(-1) if len(values) >= window else values
+            ax.plot(range(window - 1, window - 1 + len(smooth)), smooth, label=result.variant)
+        ax.set_title(term, fontsize=9)
+        ax.set_xlabel("iteration")
+        if term != "deformation":
+            ax.set_yscale("log")
+        ax.legend(fontsize=8)
+    return save_figure(figure, path, dpi=80)
