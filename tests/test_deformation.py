@@ -1109,3 +1109,47 @@ def test_feature_dim_zero_uses_positions_only() -> None:
     out = module(canonical, torch.zeros(1, 4, 0, dtype=torch.float64), times_tensor())
     assert out.gaussians.batch_shape == (1, 4)
     assert torch.isfinite(out.gaussians.means).all()
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+@pytest.mark.parametrize("value", [0.0, 0.25, 1.0])
+def test_fixed_mask_equals_a_saturated_or_constant_learned_mask(preset: str, value: float) -> None:
+    fixed = make_module(preset=preset, fixed_mask=value)
+    randomize_last_layers(fixed, mask=False)
+    learned = make_module(preset=preset)
+    learned.load_state_dict(fixed.state_dict())
+    # A learned mask forced to the same constant through the mask head's bias.
+    with torch.no_grad():
+        learned.mask_head[-1].weight.zero_()
+        learned.mask_head[-1].bias.fill_(math.log(value / (1 - value)) if 0 < value < 1 else 0)
+    canonical, features = make_inputs(2, 6)
+    out = fixed(canonical, features, times_tensor())
+    assert torch.equal(out.rigid_mask, torch.full_like(out.rigid_mask, value))
+    if 0 < value < 1:
+        reference = learned(canonical, features, times_tensor())
+        torch.testing.assert_close(out.gaussians.means, reference.gaussians.means)
+        torch.testing.assert_close(out.gaussians.scales, reference.gaussians.scales)
+    if value == 0 and preset == "paper":  # the rigid-only baseline: position offsets only
+        torch.testing.assert_close(out.deltas.means, out.rigid_offsets)
+        for name in ("quats", "scales", "opacities"):
+            delta = getattr(out.deltas, name)
+            assert torch.equal(delta, torch.zeros_like(delta)), name
+    assert "fixed_mask" in repr(fixed)
+
+
+def test_fixed_mask_gets_no_mask_gradient_and_loss() -> None:
+    module = make_module(fixed_mask=0.0)
+    randomize_last_layers(module, mask=False)
+    canonical, features = make_inputs(1, 5)
+    out = module(canonical, features, times_tensor())
+    losses = deformation_loss(out)
+    assert float(losses["mask"]) == 0.0
+    losses["total"].backward()
+    assert all(p.grad is None for p in module.mask_head.parameters())
+    assert module.heads["rigid_offset"][-1].weight.grad is not None
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.5, float("nan"), True, "0"])
+def test_fixed_mask_rejects_bad_values(value: object) -> None:
+    with pytest.raises(ValueError, match="fixed_mask"):
+        DecoupledDeformation(4, fixed_mask=value)  # type: ignore[arg-type]

@@ -1,0 +1,76 @@
+"""Every example script runs: each examples/*.py in a subprocess with a tiny budget."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+TMP = "{tmp}"  # replaced by the test's tmp_path
+
+# The arguments of every script (a new script needs an entry here: see the test below).
+ARGUMENTS: dict[str, list[str]] = {
+    "quickstart.py": [],
+    "evaluate_occ3d.py": ["--scenes", "1", "--frames", "2", "--out", f"{TMP}/report.json"],
+    "train_ddp.py": [
+        *("--steps", "3", "--scenes", "2", "--val-scenes", "1", "--frames", "1"),
+        *("--device", "cpu", "--out", TMP),
+    ],
+    "fit_scene.py": ["--iterations", "3", "--gaussians", "400", "--frames", "2", "--out", TMP],
+}
+# Scripts started by a launcher instead of plain `python`.
+LAUNCHERS: dict[str, list[str]] = {
+    "train_ddp.py": ["-m", "torch.distributed.run", "--nproc_per_node", "2", "--standalone"],
+}
+TIMEOUT_S = 300
+
+
+def run_example(name: str, tmp_path: Path) -> subprocess.CompletedProcess[str]:
+    args = [arg.replace(TMP, str(tmp_path)) for arg in ARGUMENTS[name]]
+    command = [sys.executable, *LAUNCHERS.get(name, []), str(EXAMPLES / name), *args]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    result = subprocess.run(
+        command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=TIMEOUT_S
+    )
+    assert result.returncode == 0, (
+        f"{' '.join(command)} exited with {result.returncode}\n"
+        f"--- stdout ---\n{result.stdout[-4000:]}\n--- stderr ---\n{result.stderr[-4000:]}"
+    )
+    assert result.stdout.strip(), f"{name} printed nothing"
+    return result
+
+
+def test_every_example_has_arguments() -> None:
+    scripts = {path.name for path in EXAMPLES.glob("*.py")}
+    missing = sorted(scripts - ARGUMENTS.keys())
+    assert not missing, f"add the arguments of {missing} to ARGUMENTS in {Path(__file__).name}"
+
+
+@pytest.mark.parametrize("name", sorted(ARGUMENTS))
+def test_example_runs(name: str, tmp_path: Path) -> None:
+    if not (EXAMPLES / name).is_file():
+        pytest.skip(f"examples/{name} does not exist yet")
+    result = run_example(name, tmp_path)
+
+    if name == "evaluate_occ3d.py":
+        report = json.loads((tmp_path / "report.json").read_text())
+        assert report["samples"] == 2
+        assert {"occ3d", "weak", "rayiou"} <= report.keys()
+        assert "protocol: occ3d" in result.stdout and "protocol: weak" in result.stdout
+        assert "RayIoU" in result.stdout
+    if name == "train_ddp.py":
+        out = result.stdout
+        assert "2 rank(s), backend gloo" in out
+        assert "step    3/3" in out
+        # rank 0 printed the synced metrics, once
+        assert out.count("protocol: weak") == 1
+        assert "mIoU" in out and "RayIoU" in out
+        metrics = json.loads((tmp_path / "metrics.json").read_text())
+        assert {"miou", "iou", "rayiou"} <= metrics.keys()
+        assert (tmp_path / "model.pt").is_file()
