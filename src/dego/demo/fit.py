@@ -42,8 +42,8 @@ class FitConfig:
         seed: seeds the initialisation and the frame order.
     """
 
-    iterations: int = 400
-    num_gaussians: int = 8000
+    iterations: int = 500
+    num_gaussians: int = 6000
     latent_dim: int = 16
     hidden_dim: int = 64
     depth: int = 3
@@ -214,7 +214,7 @@ def fit_scene(
         optimizer.zero_grad(set_to_none=True)
         losses["total"].backward()
         optimizer.step()
-        values = {term: float(losses[term].detach()) for term in LOSS_TERMS}
+        values = {term: losses[term].item() for term in LOSS_TERMS}
         for term in LOSS_TERMS:
             history[term].append(values[term])
         if progress is not None:

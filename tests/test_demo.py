@@ -1,0 +1,373 @@
+"""`dego demo` and the dego.demo pipeline: end to end, learning, pieces, bad input."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import io
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dego import SyntheticScene
+from dego.cli import BUDGETS, ProgressBar, main
+from dego.demo import (
+    VARIANTS,
+    DemoClip,
+    FitConfig,
+    GaussianSceneModel,
+    backproject,
+    build_deformation,
+    fit_scene,
+    format_table,
+    gaussians_at,
+    nearest_neighbour_distance,
+    predict_labels,
+    score_labels,
+    weak_losses,
+)
+from dego.splatting import SplatOutput
+
+PICTURES = ["bev_rigid.png", "bev_decoupled.png", "camera_rigid.png", "camera_decoupled.png"]
+COLUMNS = ["IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU"]
+
+
+@pytest.fixture(scope="module")
+def clip() -> DemoClip:
+    return DemoClip.from_scene(SyntheticScene(0, num_frames=2))
+
+
+# -- end to end -------------------------------------------------------------------------
+
+
+def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "demo"
+    tiny = ["--iterations", "3", "--gaussians", "300", "--frames", "2", "--out", str(out)]
+    result = subprocess.run(
+        [sys.executable, "-m", "dego", "demo", "--quick", *tiny],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "| variant | " + " | ".join(COLUMNS) in result.stdout
+    for name in ("initial", *VARIANTS):
+        assert f"| {name} |" in result.stdout
+    assert "3/3" in result.stderr  # the progress bar reached the end
+
+    payload = json.loads((out / "results.json").read_text())
+    assert payload["settings"]["iterations"] == 3
+    assert set(payload["percent"]) == {"initial", *VARIANTS}
+    for name, row in payload["percent"].items():
+        assert set(row) == set(COLUMNS)
+        for column in ("IoU", "mIoU", "RayIoU"):
+            assert row[column] is not None and math.isfinite(row[column]), (name, column)
+        for value in row.values():
+            assert value is None or 0 <= value <= 100, (name, row)
+    assert set(payload["fit_seconds"]) == set(VARIANTS)
+    assert "| variant |" in (out / "results.md").read_text()
+    for picture in [*PICTURES, "losses.png"]:
+        assert (out / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", picture
+
+
+def test_console_script_is_declared() -> None:
+    scripts = importlib.metadata.entry_points(group="console_scripts")
+    assert [s.value for s in scripts if s.name == "dego"] == ["dego.cli:main"]
+
+
+def test_fitted_decoupled_scene_beats_the_untrained_scene(clip: DemoClip) -> None:
+    config = FitConfig(iterations=60, num_gaussians=1500, seed=0)
+    initial = GaussianSceneModel.from_clip(
+        clip, config.num_gaussians, generator=torch.Generator().manual_seed(0)
+    )
+    before = score_labels(predict_labels(initial.gaussians(), clip), clip)
+    result = fit_scene(clip, "decoupled", config)
+    after = score_labels(predict_labels(result.model.gaussians(), clip), clip)
+
+    assert after.occupancy.miou > before.occupancy.miou + 0.05
+    assert after.occupancy.miou > 3 * before.occupancy.miou
+    assert after.rayiou.rayiou > before.rayiou.rayiou + 0.05
+    total = result.history["total"]
+    assert len(total) == 60 and all(math.isfinite(v) for v in total)
+    assert sum(total[-10:]) < 0.5 * sum(total[:10])
+
+
+def test_fit_is_deterministic_and_zero_iterations_keep_the_initial_scene(clip: DemoClip) -> None:
+    config = FitConfig(iterations=2, num_gaussians=200, seed=3)
+    a, b = fit_scene(clip, "rigid", config), fit_scene(clip, "rigid", config)
+    torch.testing.assert_close(a.model.means, b.model.means, rtol=0, atol=0)
+    assert a.history == b.history
+    unfitted = fit_scene(clip, "decoupled", FitConfig(iterations=0, num_gaussians=200, seed=3))
+    initial = GaussianSceneModel.from_clip(clip, 200, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(unfitted.model.means, initial.means)
+    assert all(values == [] for values in unfitted.history.values())
+
+
+# -- pieces -----------------------------------------------------------------------------
+
+
+def test_clip_layout(clip: DemoClip) -> None:
+    t, v, h, w = clip.depth.shape
+    assert (t, v) == (2, 6) and clip.image_size == (h, w)
+    assert clip.times.tolist() == [-1.0, 0.0] and clip.reference == 1
+    assert clip.world_to_cam.shape == (t, v, 4, 4) and clip.intrinsics.shape == (t, v, 3, 3)
+    assert clip.images.shape == (t, v, 3, h, w)
+    assert clip.occupancy.shape == clip.mask_camera.shape == clip.grid.shape
+    assert clip.supervised[clip.depth == 0].all()  # sky is always supervised
+    assert not clip.supervised.all()  # surfaces beyond the grid are not
+    assert clip.ray_origins.ndim == 2 and clip.ray_origins.shape[1] == 3
+    assert clip.ray_origins[:, :2].abs().max() < 39
+    moved = clip.to("cpu")
+    assert torch.equal(moved.depth, clip.depth) and moved.grid == clip.grid
+
+
+def test_backproject_inverts_the_projection(clip: DemoClip) -> None:
+    points = backproject(clip.depth, clip.world_to_cam, clip.intrinsics)  # (T, V, H, W, 3)
+    hit = clip.depth > 0
+    homogeneous = torch.cat([points, torch.ones_like(points[..., :1])], -1)
+    cam = torch.einsum("tvij,tvhwj->tvhwi", clip.world_to_cam, homogeneous)[..., :3]
+    pixels = torch.einsum("tvij,tvhwj->tvhwi", clip.intrinsics, cam)
+    uv = pixels[..., :2] / pixels[..., 2:]
+    h, w = clip.image_size
+    v_idx, u_idx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    expected = torch.stack([u_idx + 0.5, v_idx + 0.5], -1).float().expand_as(uv)
+    torch.testing.assert_close(uv[hit], expected[hit], atol=2e-3, rtol=0)
+    torch.testing.assert_close(cam[..., 2][hit], clip.depth[hit], atol=1e-3, rtol=1e-5)
+
+
+def test_model_starts_on_the_pseudo_depth_surfaces(clip: DemoClip) -> None:
+    model = GaussianSceneModel.from_clip(clip, 500, generator=torch.Generator().manual_seed(0))
+    gaussians = model.gaussians()
+    assert gaussians.batch_shape == (1,) and model.num_gaussians == 500
+    assert clip.grid.contains(gaussians.means).all()
+    torch.testing.assert_close(gaussians.features.sum(-1), torch.ones(1, 500))
+    assert (gaussians.scales >= 0.05 - 1e-6).all() and (gaussians.scales <= 2 + 1e-6).all()
+    torch.testing.assert_close(gaussians.opacities, torch.full((1, 500), 0.3))
+    assert model.latent.shape == (500, 16)
+    again = GaussianSceneModel.from_clip(clip, 500, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(model.means, again.means)
+    assert torch.equal(model.semantic_logits, again.semantic_logits)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(2, 40), st.integers(1, 4), st.integers(0, 1000), st.integers(1, 16))
+def test_nearest_neighbour_distance_matches_brute_force(
+    n: int, k: int, seed: int, chunk: int
+) -> None:
+    points = torch.randn(n, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    distances = torch.cdist(points, points)
+    distances.fill_diagonal_(float("inf"))
+    kk = min(k, n - 1)
+    expected = distances.sort(-1).values[:, :kk].mean(-1)
+    torch.testing.assert_close(nearest_neighbour_distance(points, k, chunk=chunk), expected)
+
+
+def test_nearest_neighbour_distance_of_a_single_point_is_one() -> None:
+    assert nearest_neighbour_distance(torch.zeros(1, 3)).tolist() == [1.0]
+
+
+def rendered(features: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> SplatOutput:
+    v = features.shape[0]
+    return SplatOutput(
+        features=features[None],
+        depth=depth[None],
+        alpha=alpha[None],
+        radii=torch.zeros(1, v, 0, dtype=torch.int32),
+    )
+
+
+def test_weak_losses_analytic_cases() -> None:
+    v, h, w = 2, 3, 4
+    labels = torch.randint(0, 17, (v, h, w), generator=torch.Generator().manual_seed(0))
+    labels[0, 0] = 17  # a row of sky
+    depth = torch.where(labels == 17, 0.0, 10.0)
+    everything = torch.ones(v, h, w, dtype=torch.bool)
+
+    # Opaque, exactly right: zero loss.
+    one_hot = torch.nn.functional.one_hot(labels.clamp_max(16), 17).permute(0, 3, 1, 2).float()
+    alpha = (labels != 17).float()
+    exact = rendered(one_hot * alpha[:, None], alpha, depth)
+    losses = weak_losses(exact, depth, labels, everything)
+    assert float(losses["semantics"]) == pytest.approx(0.0, abs=1e-6)
+    assert float(losses["depth"]) == 0.0
+
+    # Nothing rendered: free space is certain, sky costs nothing, surfaces cost -log(1e-6).
+    empty = rendered(torch.zeros(v, 17, h, w), torch.zeros(v, h, w), torch.zeros(v, h, w))
+    losses = weak_losses(empty, depth, labels, everything)
+    surfaces = float((labels != 17).float().mean())
+    assert float(losses["semantics"]) == pytest.approx(-math.log(1e-6) * surfaces, rel=1e-5)
+    assert float(losses["depth"]) == pytest.approx(10.0)
+
+    # Only supervised pixels count; no supervised depth gives a zero depth term.
+    sky_only = labels == 17
+    losses = weak_losses(empty, depth, labels, sky_only)
+    assert float(losses["semantics"]) == pytest.approx(0.0, abs=1e-6)
+    assert float(losses["depth"]) == 0.0
+
+
+def test_gradients_reach_every_parameter(clip: DemoClip) -> None:
+    config = FitConfig(num_gaussians=300)
+    model = GaussianSceneModel.from_clip(clip, 300, generator=torch.Generator().manual_seed(0))
+    deformation = build_deformation("decoupled", config, clip)
+    with torch.no_grad():  # leave the identity so the head weights get gradients too
+        for head in deformation.heads.values():
+            head[-1].weight.normal_(0, 0.01)
+    index = 0 if clip.reference != 0 else 1
+    gaussians, terms = gaussians_at(model, deformation, clip, index)
+    assert terms is not None and gaussians.batch_shape == (1,)
+    from dego.demo import render
+
+    losses = weak_losses(
+        render(gaussians, clip, index),
+        clip.depth[index],
+        clip.semantics[index],
+        clip.supervised[index],
+    )
+    (losses["semantics"] + losses["depth"] + terms["total"]).backward()
+    for name, param in [*model.named_parameters(), *deformation.named_parameters()]:
+        assert param.grad is not None and torch.isfinite(param.grad).all(), name
+    for name, param in model.named_parameters():
+        if name != "quats":  # isotropic initial scales: the rotation does not matter yet
+            assert param.grad.abs().sum() > 0, name
+    canonical, none = gaussians_at(model, deformation, clip, clip.reference)
+    assert none is None and torch.equal(canonical.means, model.means[None])
+
+
+def test_variants_differ_only_in_the_mask() -> None:
+    clip_times = torch.tensor([-2.0, 0.0, 1.0])
+
+    class Times:
+        times = clip_times
+
+    rigid = build_deformation("rigid", FitConfig(), Times())  # type: ignore[arg-type]
+    decoupled = build_deformation("decoupled", FitConfig(), Times())  # type: ignore[arg-type]
+    assert rigid.fixed_mask == 0.0 and decoupled.fixed_mask is None
+    assert rigid.time_scale == decoupled.time_scale == 2.0
+    with pytest.raises(ValueError, match="variant"):
+        build_deformation("flow", FitConfig(), Times())  # type: ignore[arg-type]
+
+
+class FixedScore:
+    def __init__(self, values: list[float]) -> None:
+        self.values = values
+
+    def row(self) -> dict[str, float]:
+        return dict(zip(COLUMNS, self.values, strict=True))
+
+
+def test_format_table() -> None:
+    scores = {"a": FixedScore([1, 2, 3, 4, float("nan"), 6.789]), "b": FixedScore([0] * 6)}
+    table = format_table(scores, {"a": 12.34})  # type: ignore[arg-type]
+    lines = table.splitlines()
+    assert lines[0] == "| variant | " + " | ".join(COLUMNS) + " | fit (s) |"
+    assert lines[2] == "| a | 1.00 | 2.00 | 3.00 | 4.00 | nan | 6.79 | 12.3 |"
+    assert lines[3] == "| b | 0.00 | 0.00 | 0.00 | 0.00 | 0.00 | 0.00 | - |"
+    assert "fit (s)" not in format_table(scores)  # type: ignore[arg-type]
+
+
+def test_empty_prediction_scores_zero(clip: DemoClip) -> None:
+    empty = torch.full(clip.grid.shape, 17, dtype=torch.long)
+    row = score_labels(empty, clip).row()
+    assert row["IoU"] == 0 and row["mIoU"] == 0
+
+
+# -- progress bar and command line -----------------------------------------------------------
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_bar_prints_quartiles_off_a_terminal() -> None:
+    stream = io.StringIO()
+    bar = ProgressBar("fit", 8, stream)
+    for i in range(8):
+        bar(i, {"total": 1.0 / (i + 1)})
+    lines = stream.getvalue().splitlines()
+    assert [line.split("] ")[1].split()[0] for line in lines] == ["2/8", "4/8", "6/8", "8/8"]
+    assert "loss 0.125" in lines[-1]
+
+
+def test_progress_bar_redraws_one_line_on_a_terminal() -> None:
+    stream = Terminal()
+    bar = ProgressBar("fit", 3, stream)
+    for i in range(3):
+        bar(i, {"total": 0.5})
+    text = stream.getvalue()
+    assert text.startswith("\r") and text.endswith(" it/s\n") and text.count("\n") == 1
+    assert "3/3 loss 0.500" in text
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--frames", "0"], "--frames"),
+        (["--iterations", "-1"], "--iterations"),
+        (["--gaussians", "0"], "--gaussians"),
+        (["--device", "nonsense"], "--device"),
+        (["--seed", "x"], "--seed"),
+    ],
+)
+def test_bad_arguments_exit_with_a_message(
+    arguments: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["demo", *arguments])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA exists here")
+def test_cuda_device_is_refused_without_cuda(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["demo", "--device", "cuda"])
+    assert "--device" in capsys.readouterr().err
+
+
+def test_budgets() -> None:
+    assert BUDGETS["quick"]["iterations"] < BUDGETS["full"]["iterations"]
+    assert set(BUDGETS["quick"]) == set(BUDGETS["full"]) == {"frames", "iterations", "gaussians"}
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("iterations", -1),
+        ("num_gaussians", 0),
+        ("depth", 0),
+        ("depth_weight", float("nan")),
+        ("deformation_weight", -1.0),
+        ("lr", {"means": 0.0}),
+    ],
+)
+def test_fit_config_rejects_bad_values(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        FitConfig(**{field: value})  # type: ignore[arg-type]
+
+
+def test_model_rejects_bad_input(clip: DemoClip) -> None:
+    with pytest.raises(ValueError, match="num_gaussians"):
+        GaussianSceneModel.from_clip(clip, 10**9)
+    with pytest.raises(ValueError, match="opacity"):
+        GaussianSceneModel(torch.zeros(2, 3), torch.ones(2, 3), opacity=1.0)
+    with pytest.raises(ValueError, match="means, scales"):
+        GaussianSceneModel(torch.zeros(2, 3), torch.ones(3, 3))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_demo_runs_on_cuda(tmp_path: Path) -> None:
+    code = main(
+        [
+            *["demo", "--device", "cuda", "--frames", "2", "--iterations", "3"],
+            *["--gaussians", "300", "--no-pictures", "--out", str(tmp_path)],
+        ]
+    )
+    assert code == 0 and (tmp_path / "results.json").exists()
