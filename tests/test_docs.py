@@ -33,5 +33,5 @@ def test_readme_has_exactly_two_setup_commands() -> None:
         if line and not line.startswith("#")
     ]
     assert len(commands) == 2
-    assert commands[0].endswith("python examples/quickstart.py")
+    assert commands[0].endswith("dego demo --quick")
     assert commands[1].endswith("python -m pytest -q")
