@@ -17,6 +17,7 @@ forward from behind and above the ego by default.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -457,7 +458,9 @@ def compare_bev(
     for name, labels in (("pred", pred), ("gt", gt)):
         index = _label_tensor(name, labels).cpu()
         maps.append(bev_labels(index, free_label=free_label) if index.ndim == 3 else index)
-    fig = _new_figure((10.0, 5.6 if legend else 5.0))
+    # Room for the legend's rows (up to 6 names per row) below the square panels.
+    rows = math.ceil(len(_present_classes(torch.cat([m.flatten() for m in maps]), free_label)) / 6)
+    fig = _new_figure((10.0, 5.0 + (0.25 + 0.3 * rows if legend and rows else 0.0)))
     axes = fig.subplots(1, 2, sharex=True, sharey=True)
     for ax, bev, title in zip(axes, maps, titles, strict=True):
         plot_bev(bev, grid=grid, ax=ax, title=title, free_label=free_label)
