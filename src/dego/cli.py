@@ -33,8 +33,8 @@ from dego.demo import (
 )
 
 BUDGETS = {
-    "quick": {"frames": 3, "iterations": 100, "gaussians": 2000},
-    "full": {"frames": 5, "iterations": 500, "gaussians": 6000},
+    "quick": {"frames": 3, "iterations": 150, "gaussians": 3000},
+    "full": {"frames": 5, "iterations": 600, "gaussians": 8000},
 }
 """Default clip length, iterations per variant and Gaussians of ``--quick`` and the full run."""
 

@@ -42,8 +42,8 @@ class FitConfig:
         seed: seeds the initialisation and the frame order.
     """
 
-    iterations: int = 500
-    num_gaussians: int = 6000
+    iterations: int = 600
+    num_gaussians: int = 8000
     latent_dim: int = 16
     hidden_dim: int = 64
     depth: int = 3
