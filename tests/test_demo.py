@@ -27,8 +27,10 @@ from dego.demo import (
     fit_scene,
     format_table,
     gaussians_at,
+    mask_by_group,
     nearest_neighbour_distance,
     predict_labels,
+    rigidity_mask,
     score_labels,
     weak_losses,
 )
@@ -72,6 +74,9 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
         for value in row.values():
             assert value is None or 0 <= value <= 100, (name, row)
     assert set(payload["fit_seconds"]) == set(VARIANTS)
+    assert set(payload["rigidity_mask"]) == set(VARIANTS)
+    assert payload["rigidity_mask"]["rigid"]["all"] == 0.0
+    assert "decoupled: mean rigidity mask" in result.stdout
     assert "| variant |" in (out / "results.md").read_text()
     for picture in [*PICTURES, "losses.png"]:
         assert (out / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", picture
@@ -97,6 +102,28 @@ def test_fitted_decoupled_scene_beats_the_untrained_scene(clip: DemoClip) -> Non
     total = result.history["total"]
     assert len(total) == 60 and all(math.isfinite(v) for v in total)
     assert sum(total[-10:]) < 0.5 * sum(total[:10])
+
+
+def test_rigidity_mask_of_each_variant(clip: DemoClip) -> None:
+    config = FitConfig(iterations=4, num_gaussians=200)
+    rigid, decoupled = (fit_scene(clip, variant, config) for variant in ("rigid", "decoupled"))
+    assert torch.equal(rigidity_mask(rigid), torch.zeros(200))
+    mask = rigidity_mask(decoupled)
+    assert mask.shape == (200,) and ((mask > 0) & (mask < 1)).all()
+    assert not torch.allclose(mask, torch.full_like(mask, 0.5))  # it has moved from 0.5
+
+    summary = mask_by_group(mask, decoupled.model)
+    assert list(summary) == ["all", "insm", "scnm", "hcm"]
+    assert summary["all"] == pytest.approx(float(mask.mean()))
+    labels = decoupled.model.semantic_logits.argmax(-1)
+    scene = torch.isin(labels, torch.tensor([11, 13, 14, 15, 16]))
+    if scene.any():
+        assert summary["scnm"] == pytest.approx(float(mask[scene].mean()))
+    with torch.no_grad():  # an empty group gives NaN
+        decoupled.model.semantic_logits.zero_()
+        decoupled.model.semantic_logits[:, 11] = 1
+    emptied = mask_by_group(mask, decoupled.model)
+    assert math.isnan(emptied["insm"]) and math.isnan(emptied["hcm"])
 
 
 def test_fit_is_deterministic_and_zero_iterations_keep_the_initial_scene(clip: DemoClip) -> None:

@@ -28,7 +28,9 @@ from dego.demo import (
     VariantScore,
     fit_scene,
     format_table,
+    mask_by_group,
     predict_labels,
+    rigidity_mask,
     score_labels,
 )
 
@@ -165,10 +167,16 @@ def run_demo(
     seconds = {result.variant: result.seconds for result in results}
     table = format_table(scores, seconds)
     print(table)
+    masks = {r.variant: mask_by_group(rigidity_mask(r), r.model) for r in results}
+    for variant, summary in masks.items():
+        print(
+            f"{variant}: mean rigidity mask m (1 = nonrigid) "
+            + ", ".join(f"{group} {value:.3f}" for group, value in summary.items())
+        )
 
     out.mkdir(parents=True, exist_ok=True)
     written = [
-        _write_results(out, table, scores, seconds, seed, budget, device),
+        _write_results(out, table, scores, seconds, masks, seed, budget, device),
     ]
     if pictures:
         written += _write_pictures(out, clip, labels, results)
@@ -182,16 +190,19 @@ def _write_results(
     table: str,
     scores: dict[str, VariantScore],
     seconds: dict[str, float],
+    masks: dict[str, dict[str, float]],
     seed: int,
     budget: dict[str, int],
     device: torch.device,
 ) -> Path:
     settings = {"seed": seed, **budget, "device": str(device), "dego": __version__}
-    rows = {
-        name: {key: (None if math.isnan(v) else v) for key, v in score.row().items()}
-        for name, score in scores.items()
+    rows = {name: _json_floats(score.row()) for name, score in scores.items()}
+    payload = {
+        "settings": settings,
+        "percent": rows,
+        "fit_seconds": seconds,
+        "rigidity_mask": {variant: _json_floats(summary) for variant, summary in masks.items()},
     }
-    payload = {"settings": settings, "percent": rows, "fit_seconds": seconds}
     (out / "results.json").write_text(json.dumps(payload, indent=2) + "\n")
     path = out / "results.md"
     path.write_text(
@@ -199,9 +210,19 @@ def _write_results(
         + ", ".join(f"{key} {value}" for key, value in settings.items())
         + "\n\nWeak protocol (camera mask) and RayIoU, percent:\n\n"
         + table
+        + "\n\nMean rigidity mask m (1 = nonrigid) over all Gaussians and by the group of "
+        + "their most likely class:\n\n"
+        + "\n".join(
+            f"- {variant}: " + ", ".join(f"{g} {v:.3f}" for g, v in summary.items())
+            for variant, summary in masks.items()
+        )
         + "\n"
     )
     return path
+
+
+def _json_floats(values: dict[str, float]) -> dict[str, float | None]:
+    return {key: (None if math.isnan(value) else value) for key, value in values.items()}
 
 
 def _write_pictures(

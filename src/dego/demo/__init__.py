@@ -15,7 +15,9 @@ from dego.demo.fit import (
     build_deformation,
     fit_scene,
     gaussians_at,
+    mask_by_group,
     render,
+    rigidity_mask,
     weak_losses,
 )
 from dego.demo.model import GaussianSceneModel, nearest_neighbour_distance
@@ -41,9 +43,11 @@ __all__ = [
     "fit_scene",
     "format_table",
     "gaussians_at",
+    "mask_by_group",
     "nearest_neighbour_distance",
     "predict_labels",
     "render",
+    "rigidity_mask",
     "score_labels",
     "weak_losses",
 ]

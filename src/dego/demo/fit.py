@@ -13,6 +13,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from dego._checks import check_int, check_positive
+from dego.classes import CLASS_GROUPS
 from dego.deformation import DecoupledDeformation, deformation_loss
 from dego.demo.clip import DemoClip
 from dego.demo.model import GaussianSceneModel
@@ -92,6 +93,25 @@ class FitResult:
     deformation: DecoupledDeformation
     history: dict[str, list[float]]
     seconds: float
+
+
+@torch.no_grad()
+def rigidity_mask(result: FitResult) -> Float[Tensor, " N"]:
+    """The fitted per-Gaussian mask m (1 = nonrigid; ``paper`` preset: time-independent)."""
+    model = result.model
+    times = model.means.new_zeros(1)
+    return result.deformation(model.gaussians(), model.latent[None], times).rigid_mask[0]
+
+
+def mask_by_group(mask: Float[Tensor, " N"], model: GaussianSceneModel) -> dict[str, float]:
+    """Mean mask over all Gaussians and over those whose most likely class is in each of
+    the InsM / ScnM / HCM groups (NaN for an empty group)."""
+    labels = model.semantic_logits.argmax(-1)
+    summary = {"all": float(mask.mean())}
+    for name, ids in CLASS_GROUPS.items():
+        members = torch.isin(labels, torch.tensor(ids, device=labels.device))
+        summary[name] = float(mask[members].mean()) if members.any() else float("nan")
+    return summary
 
 
 def build_deformation(variant: Variant, config: FitConfig, clip: DemoClip) -> DecoupledDeformation:
