@@ -7,8 +7,8 @@ The core of ``dego demo``, written out step by step for one variant:
 3. each step, deform them to one frame's time with DecoupledDeformation, splat class
    probabilities and depth into that frame's cameras, and minimise cross-entropy + L1
    depth + the deformation losses with Adam;
-4. voxelise the canonical Gaussians and score them against the ground-truth grid, which
-   is used for nothing else.
+4. voxelise the Gaussians at every frame (deformed to its time, in its ego coordinates)
+   and score them against that frame's ground-truth grid, used for nothing else.
 
     python examples/fit_scene.py --iterations 100 --gaussians 2000 --out fit-scene
 """
@@ -22,13 +22,14 @@ import torch
 
 import dego
 from dego.demo import (
+    DEMO_FRAME_DT,
     DemoClip,
     FitConfig,
     GaussianSceneModel,
     build_deformation,
     format_table,
-    predict_labels,
-    score_labels,
+    predict_clip,
+    score_clip,
     weak_losses,
 )
 
@@ -44,7 +45,7 @@ def main() -> None:
     args = parser.parse_args()
 
     # 1. The clip. World coordinates = the reference frame's ego frame (offset 0).
-    scene = dego.SyntheticScene(args.seed, num_frames=args.frames)
+    scene = dego.SyntheticScene(args.seed, num_frames=args.frames, frame_dt=DEMO_FRAME_DT)
     clip = DemoClip.from_scene(scene)
     print(f"clip: offsets {scene.offsets}, {clip.depth.shape[1]} cameras, {clip.image_size}")
 
@@ -55,7 +56,7 @@ def main() -> None:
         clip, config.num_gaussians, generator=torch.Generator().manual_seed(args.seed)
     )
     deformation = build_deformation(args.variant, config, clip)
-    initial_labels = predict_labels(model.gaussians(), clip)
+    initial_labels = predict_clip(model, None, clip)  # no deformation: a static scene
     optimizer = torch.optim.Adam(
         [
             {"params": [model.means], "lr": config.lr["means"]},
@@ -68,11 +69,15 @@ def main() -> None:
         ]
     )
 
-    # 3. The fit: one frame per step.
+    # 3. The fit: one frame per step. During the warm-up, frames other than the reference
+    # train only the deformation: the canonical Gaussians are detached there, so moving
+    # agents are not made transparent before the deformation can follow them.
     frames = torch.Generator().manual_seed(args.seed)
     for step in range(args.iterations):
         index = int(torch.randint(clip.num_frames, (), generator=frames))
         gaussians = model.gaussians()  # (1, N), features = class probabilities (1, N, 17)
+        if step < config.warmup * args.iterations and index != clip.reference:
+            gaussians = gaussians.detach()
         deformation_term = torch.zeros(())
         if index != clip.reference:  # other frames: deform the canonical set to their time
             deformed = deformation(gaussians, model.latent[None], clip.times[index : index + 1])
@@ -101,19 +106,20 @@ def main() -> None:
                 f"depth {losses['depth'].item():.2f} m  deformation {deformation_term.item():.4f}"
             )
 
-    # 4. Voxelise the canonical Gaussians and score (weak protocol + RayIoU).
-    labels = predict_labels(model.gaussians(), clip)
+    # 4. Voxelise at every frame (deformed to t, in t's ego coordinates) and score: the
+    # reference frame (weak protocol + RayIoU), the other frames, and moving agents.
+    labels = predict_clip(model, deformation, clip)
     scores = {
-        "initial": score_labels(initial_labels, clip),
-        args.variant: score_labels(labels, clip),
+        "initial": score_clip(initial_labels, clip),
+        args.variant: score_clip(labels, clip),
     }
     print(format_table(scores))
     if args.out is not None:
         from dego.viz import compare_bev, save_figure
 
-        path = save_figure(
-            compare_bev(labels, clip.occupancy, grid=clip.grid), args.out / "bev.png"
-        )
+        reference = clip.reference
+        figure = compare_bev(labels[reference], clip.occupancy[reference], grid=clip.grid)
+        path = save_figure(figure, args.out / "bev.png")
         print(f"wrote {path}")
 
 

@@ -335,6 +335,47 @@ def test_intersect_matches_brute_force(chunk, monkeypatch) -> None:
     assert int((t == 0).sum()) > 0
 
 
+@pytest.mark.parametrize("block", [1, 3, 32, 1000])
+@pytest.mark.parametrize("chunk", [None, 40])
+def test_intersect_ray_blocks_match_brute_force(block, chunk, monkeypatch) -> None:
+    """Screening blocks of consecutive rays as cones never changes the answer: bundles from
+    shared origins (camera-like, origins inside some bounding spheres), scattered rays,
+    short and long directions, and zero directions (never hit)."""
+    monkeypatch.setattr(primitives_module, "_RAY_BLOCK", block)
+    if chunk is not None:
+        monkeypatch.setattr(primitives_module, "_PAIR_CHUNK", chunk)
+    solids = Primitives.cat(
+        [random_solids(20, seed=4), solid(BOX, (0.0, 0.0, -3.0), (40.0, 40.0, 1.0), label=11)]
+    )
+    g = torch.Generator().manual_seed(5)
+    u, v = torch.meshgrid(
+        torch.linspace(-0.6, 0.6, 23), torch.linspace(-0.4, 0.4, 9), indexing="ij"
+    )
+    fan = torch.stack([torch.ones_like(u), u, v], -1).reshape(-1, 3)
+    origins = torch.cat(
+        [
+            torch.tensor([-8.0, 0.5, 0.0]).expand(fan.shape[0], 3),
+            torch.tensor([0.0, 0.0, 0.0]).expand(fan.shape[0], 3),  # inside the ground's sphere
+            (torch.rand(150, 3, generator=g) * 2 - 1) * 9,
+            torch.zeros(3, 3),
+        ]
+    )
+    directions = torch.cat(
+        [
+            fan,
+            -fan * 0.01,
+            torch.randn(150, 3, generator=g) * (0.2 + torch.rand(150, 1, generator=g)),
+            torch.zeros(3, 3),
+        ]
+    )
+    t, index = solids.intersect(origins, directions)
+    best, winner = brute_force_intersect(solids, origins, directions)
+    best[-3:], winner[-3:] = INF, -1  # a zero direction hits nothing
+    assert torch.equal(t, best) and torch.equal(index, winner)
+    assert 100 < int((index >= 0).sum()) < origins.shape[0] - 50
+    assert int((index == len(solids) - 1).sum()) > 20  # the ground, from inside its sphere
+
+
 @settings(max_examples=30)
 @given(st.integers(0, 2**31 - 1), st.integers(1, 8))
 def test_hits_agree_with_signed_distances(seed: int, n: int) -> None:
@@ -434,6 +475,21 @@ def test_rasterize_matches_brute_force_with_overlaps_and_clipping() -> None:
     assert not np.array_equal(got, labels.numpy())
 
 
+def last_solid_within(solids: Primitives, grid: VoxelGrid, margin: float) -> torch.Tensor:
+    """Brute force: per voxel centre (flattened), the index of the last solid whose signed
+    distance is within ``margin`` (-1 where none)."""
+    centres = grid.centers().reshape(-1, 3)
+    n = len(solids)
+    within = (
+        solids.signed_distance(
+            torch.arange(n).repeat(centres.shape[0]), centres.repeat_interleave(n, 0)
+        )
+        .view(-1, n)
+        .le(margin)
+    )
+    return torch.where(within, torch.arange(n), -1).max(-1).values
+
+
 @pytest.mark.parametrize("chunk", [1, 50, 1000])
 def test_rasterize_chunking_is_invisible(chunk, monkeypatch) -> None:
     grid = VoxelGrid((-6.0, -6.0, -6.0), (6.0, 6.0, 6.0), 0.5)
@@ -442,19 +498,44 @@ def test_rasterize_chunking_is_invisible(chunk, monkeypatch) -> None:
     monkeypatch.setattr(primitives_module, "_PAIR_CHUNK", chunk)
     assert torch.equal(solids.rasterize(grid, 0.1), full)
     # and the rule itself: the label of the last solid within the margin of a voxel centre
-    centres = grid.centers().reshape(-1, 3)
-    n = len(solids)
-    within = (
-        solids.signed_distance(
-            torch.arange(n).repeat(centres.shape[0]), centres.repeat_interleave(n, 0)
-        )
-        .view(-1, n)
-        .le(0.1)
-    )
-    last = torch.where(within, torch.arange(n), -1).max(-1).values
+    last = last_solid_within(solids, grid, 0.1)
     expected = torch.where(last >= 0, solids.labels[last.clamp_min(0)], FREE).to(torch.uint8)
     assert torch.equal(full.reshape(-1), expected)
     assert int((last >= 0).sum()) > 100
+
+
+def test_rasterize_index_is_the_winning_solid() -> None:
+    """rasterize_index gives the index of the solid whose label rasterize writes: the last
+    solid within the margin (-1 where none), on a hand-counted overlap."""
+    grid = UNIT_GRID
+    solids = Primitives.cat(
+        [
+            solid(BOX, (2.0, 2.0, 0.5), (2.0, 2.0, 0.5), label=11),  # the z = 0 layer
+            solid(BOX, (1.5, 1.5, 1.0), (0.5, 0.5, 1.0), label=3),  # a column over (1, 1)
+            solid(BOX, (9.0, 9.0, 9.0), (0.5, 0.5, 0.5), label=5),  # outside the grid
+        ]
+    )
+    index = solids.rasterize_index(grid, 0.1)
+    assert index.shape == (4, 4, 4) and index.dtype == torch.int64
+    expected = torch.full((4, 4, 4), -1, dtype=torch.long)
+    expected[:, :, 0] = 0
+    expected[1, 1, :2] = 1  # the column wins the layer's voxel below it
+    assert torch.equal(index, expected)
+    labels = torch.where(index >= 0, solids.labels[index.clamp_min(0)], FREE).to(torch.uint8)
+    assert torch.equal(solids.rasterize(grid, 0.1), labels)
+    assert torch.equal(Primitives.empty().rasterize_index(grid, 0.1), torch.full_like(index, -1))
+
+
+@pytest.mark.parametrize("chunk", [1, 50, 1000])
+def test_rasterize_index_matches_the_rule(chunk, monkeypatch) -> None:
+    grid = VoxelGrid((-6.0, -6.0, -6.0), (6.0, 6.0, 6.0), 0.5)
+    solids = random_solids(30, seed=6, spread=5.0)
+    monkeypatch.setattr(primitives_module, "_PAIR_CHUNK", chunk)
+    index = solids.rasterize_index(grid, 0.1)
+    last = last_solid_within(solids, grid, 0.1)
+    assert torch.equal(index.reshape(-1), last)
+    labels = torch.where(last >= 0, solids.labels[last.clamp_min(0)], FREE).to(torch.uint8)
+    assert torch.equal(solids.rasterize(grid, 0.1).reshape(-1), labels)
 
 
 # -- rigid motions ---------------------------------------------------------------------

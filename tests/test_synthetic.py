@@ -10,15 +10,25 @@ small images.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+import dego.data.synthetic as synthetic_module
 from dego.classes import Occ3DLabel
 from dego.data.primitives import Primitives, yaw_matrix
-from dego.data.synthetic import CAMERAS, LIDAR_ORIGIN, SyntheticFrame, SyntheticScene
+from dego.data.synthetic import (
+    CAMERAS,
+    LIDAR_ORIGIN,
+    SyntheticAgent,
+    SyntheticFrame,
+    SyntheticScene,
+)
 from dego.grid import VoxelGrid
 from dego.raycast import cast_rays, generate_lidar_rays
 from tests.ray_reference import to_voxel_units, traverse
@@ -172,6 +182,9 @@ FIELDS = {
     "occupancy": ((200, 200, 16), torch.uint8),
     "mask_camera": ((200, 200, 16), torch.bool),
     "mask_lidar": ((200, 200, 16), torch.bool),
+    "instances": ((200, 200, 16), torch.int64),
+    "instance_pixels": ((6, "H", "W"), torch.int64),
+    "agent_poses": ((21, 4, 4), torch.float64),  # 10 vehicles, 8 pedestrians, 3 riders
 }
 
 
@@ -208,7 +221,15 @@ def test_frame_fields(size, offset) -> None:
 
 def test_image_size_does_not_change_the_scene() -> None:
     default, custom = frame(1), frame(1, image_size=CUSTOM_SIZE)
-    for name in ("occupancy", "mask_lidar", "ego_pose", "world_to_cam", "lidar_origin"):
+    for name in (
+        "occupancy",
+        "mask_lidar",
+        "ego_pose",
+        "world_to_cam",
+        "lidar_origin",
+        "instances",
+        "agent_poses",
+    ):
         assert torch.equal(getattr(default, name), getattr(custom, name)), name
     assert not torch.equal(default.mask_camera, custom.mask_camera)  # fewer rays
 
@@ -785,8 +806,16 @@ def test_label_noise_only_at_boundaries() -> None:
         [padded[:, 1:-1, 2:], padded[:, 2:, 1:-1], padded[:, 1:-1, :-2], padded[:, :-2, 1:-1]]
     )
     assert bool((neighbours == f.semantics).any(0)[changed].all())
-    # everything but the pseudo labels is untouched
-    for name in ("images", "occupancy", "mask_camera", "mask_lidar", "world_to_cam"):
+    # everything but the pseudo labels is untouched (instance_pixels is ground truth)
+    for name in (
+        "images",
+        "occupancy",
+        "mask_camera",
+        "mask_lidar",
+        "world_to_cam",
+        "instances",
+        "instance_pixels",
+    ):
         assert torch.equal(getattr(f, name), getattr(clean, name)), name
 
 
@@ -822,3 +851,263 @@ def test_cones_and_barriers_stand_clear_of_vehicles(seed: int) -> None:
     owner = owners.repeat(points.shape[0])
     d = static.signed_distance(owner, points.repeat_interleave(owners.shape[0], 0))
     assert bool((d > 0).all())
+
+
+# -- agents and instances ---------------------------------------------------------------------
+L = Occ3DLabel
+KIND_LABELS = synthetic_module._AGENT_LABELS
+HCM = ("bicycle", "motorcycle", "pedestrian")  # the articulated kinds (humans, cycles)
+AGENT_LABELS = torch.tensor(sorted({int(v) for v in KIND_LABELS.values()}))
+GROUND_LABELS = torch.tensor(GROUND)
+
+
+@settings(max_examples=15)
+@given(st.integers(-(2**31), 2**31 - 1), st.floats(-5.0, 5.0))
+def test_agents_fields_and_poses(seed: int, time: float) -> None:
+    s = SyntheticScene(seed, image_size=TINY_SIZE)
+    agents = s.agents
+    assert isinstance(agents, tuple) and len(agents) == 21
+    assert [a.instance_id for a in agents] == list(range(1, 22))
+    kinds = [a.kind for a in agents]
+    assert kinds[:5] == ["car", "truck", "bus", "trailer", "construction_vehicle"]
+    assert set(kinds[5:10]) <= {"car", "truck"}
+    assert kinds[10:] == ["pedestrian"] * 8 + ["bicycle", "motorcycle", "bicycle"]
+    for a in agents:
+        assert isinstance(a, SyntheticAgent)
+        assert a.label == KIND_LABELS[a.kind]
+        assert a.articulated == (a.kind in HCM)
+        assert a.moving == (a.speed > 0) and a.speed >= 0
+        assert a.moving or a.kind in ("car", "truck", "bus", "trailer", "construction_vehicle")
+        assert 0.6 <= a.shade <= 1.0
+        start, later = a.pose(0.0), a.pose(time)
+        assert start.shape == (4, 4) and start.dtype == torch.float64
+        expected = torch.eye(4, dtype=torch.float64)
+        expected[:3, :3] = yaw_matrix(torch.tensor(a.heading, dtype=torch.float64))
+        expected[:2, 3] = torch.tensor(a.position, dtype=torch.float64)
+        torch.testing.assert_close(start, expected, atol=1e-12, rtol=0)
+        assert torch.equal(later[:3, :3], start[:3, :3]) and torch.equal(later[3], start[3])
+        forward = torch.tensor([math.cos(a.heading), math.sin(a.heading), 0.0], dtype=torch.float64)
+        torch.testing.assert_close(
+            later[:3, 3] - start[:3, 3], a.speed * time * forward, atol=1e-9, rtol=0
+        )
+    # trailers and construction vehicles park; people always walk
+    assert not agents[3].moving and not agents[4].moving
+    assert all(a.moving for a in agents[10:18])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        agents[0].speed = 1.0  # type: ignore[misc]
+
+
+def test_agent_arguments_are_checked() -> None:
+    s, agent = scene(), scene().agents[0]
+    for field, value in (("instance_id", 0), ("instance_id", 1.0), ("kind", "tank")):
+        with pytest.raises(ValueError, match=field):
+            dataclasses.replace(agent, **{field: value})
+    for time in (math.nan, math.inf, "0", None, True):
+        with pytest.raises(ValueError, match="time"):
+            agent.pose(time)
+        with pytest.raises(ValueError, match="time"):
+            s.agent_shape(agent, time)
+    with pytest.raises(ValueError, match="agent"):
+        s.agent_shape("car", 0.0)
+    for offset in (3, 0.0, True):
+        with pytest.raises(ValueError, match="offset"):
+            s.instance_pixels(offset)
+
+
+def place(s: SyntheticScene, time: float, poses: torch.Tensor | None = None) -> Primitives:
+    """The public reconstruction of the scene's solids at ``time`` (world coordinates)."""
+    poses = torch.stack([a.pose(time) for a in s.agents]) if poses is None else poses
+    parts = [
+        s.agent_shape(a, time).transformed(pose[:3, :3], pose[:3, 3])
+        for a, pose in zip(s.agents, poses, strict=True)
+    ]
+    return Primitives.cat([s.static_primitives, *parts])
+
+
+def solid_instances(s: SyntheticScene, time: float) -> torch.Tensor:
+    """``(P,)`` instance id of every solid of ``place`` (0 for static solids)."""
+    ids = [torch.zeros(len(s.static_primitives), dtype=torch.long)]
+    ids += [torch.full((len(s.agent_shape(a, time)),), a.instance_id) for a in s.agents]
+    return torch.cat(ids)
+
+
+@pytest.mark.parametrize("time", [-1.0, 0.0, 0.37, 2.5])
+def test_primitives_are_static_plus_placed_agent_shapes(time: float) -> None:
+    s = scene()
+    expected, got = place(s, time), s.primitives(time)
+    for field in ("kinds", "centers", "rotations", "sizes", "labels", "shades"):
+        assert torch.equal(getattr(got, field), getattr(expected, field)), field
+    static = s.static_primitives
+    assert not bool(torch.isin(static.labels, AGENT_LABELS).any())
+    assert set(static.labels.tolist()) == {0, 1, 8, 11, 12, 13, 14, 15, 16}
+    for a in s.agents:  # in the agent's own frame; only people and cycles move their limbs
+        shape, later = s.agent_shape(a, time), s.agent_shape(a, time + 0.25)
+        assert set(shape.labels.tolist()) == {a.label}
+        assert float(shape.centers[:, :2].abs().max()) < 6  # about its origin
+        assert torch.equal(shape.centers, later.centers) != (a.articulated and a.moving), a.kind
+
+
+FRAMES = [(0, 0, DEFAULT_SIZE), (0, 1, DEFAULT_SIZE), (3, -2, TINY_SIZE)]  # seed, offset, size
+
+
+def frame_of(seed: int, offset: int, size) -> SyntheticFrame:
+    return (
+        frame(offset)
+        if seed == SEED and size == DEFAULT_SIZE
+        else frame(offset, seed, image_size=size)
+    )
+
+
+@pytest.mark.parametrize(("seed", "offset", "size"), FRAMES)
+def test_grid_rebuilt_from_public_data(seed: int, offset: int, size) -> None:
+    """The static solids and the agents' shapes, placed with the frame's agent poses and
+    moved into the frame's ego coordinates, rasterize to exactly the frame's occupancy; the
+    winning solids' agents are its instances."""
+    s, f = scene(seed, image_size=size), frame_of(seed, offset, size)
+    assert torch.equal(f.agent_poses, torch.stack([a.pose(f.time) for a in s.agents]))
+    to_ego = torch.linalg.inv(f.ego_pose.double())
+    solids = place(s, f.time, f.agent_poses).transformed(to_ego[:3, :3], to_ego[:3, 3])
+    winner = solids.rasterize_index(s.grid, MARGIN)
+    assert torch.equal(solids.rasterize(s.grid, MARGIN), f.occupancy)
+    ids = solid_instances(s, f.time)
+    rebuilt = torch.where(winner >= 0, ids[winner.clamp_min(0)], 0)
+    assert torch.equal(rebuilt, f.instances)
+
+
+@pytest.mark.parametrize(("seed", "offset", "size"), FRAMES)
+def test_instances_agree_with_occupancy(seed: int, offset: int, size) -> None:
+    s, f = scene(seed, image_size=size), frame_of(seed, offset, size)
+    ids = f.instances
+    assert int(ids.min()) >= 0 and int(ids.max()) <= len(s.agents)
+    # agents and static solids have disjoint labels: an agent voxel is one with an agent label
+    assert torch.equal(ids > 0, torch.isin(f.occupancy.long(), AGENT_LABELS))
+    labels = torch.tensor([0] + [a.label for a in s.agents])
+    assert torch.equal(f.occupancy.long()[ids > 0], labels[ids[ids > 0]])
+    # every agent near the ego is in the grid, with a few voxels at least
+    to_ego = torch.linalg.inv(f.ego_pose.double())
+    counts = torch.bincount(ids.flatten(), minlength=len(s.agents) + 1)
+    for a, pose in zip(s.agents, f.agent_poses, strict=True):
+        x, y = (to_ego @ pose)[:2, 3].tolist()
+        if abs(x) < 36 and abs(y) < 36:
+            assert int(counts[a.instance_id]) >= 3, (a.kind, x, y)
+
+
+@pytest.mark.parametrize(("seed", "offset", "size"), FRAMES)
+def test_instance_pixels_agree_with_semantics(seed: int, offset: int, size) -> None:
+    s, f = scene(seed, image_size=size), frame_of(seed, offset, size)
+    ids = f.instance_pixels
+    assert torch.equal(s.instance_pixels(offset), ids)
+    labels = torch.tensor([0] + [a.label for a in s.agents])
+    agent = ids > 0
+    assert int(agent.sum()) > 0 and int(ids.max()) <= len(s.agents)
+    assert torch.equal(f.semantics[agent], labels[ids[agent]])  # no label noise here
+    assert torch.equal(agent, torch.isin(f.semantics, AGENT_LABELS))
+    assert bool((f.depth[agent] > 0).all())
+
+
+def test_instance_pixels_ignore_label_noise() -> None:
+    clean, f = frame(1, image_size=CUSTOM_SIZE), noisy()
+    assert not torch.equal(clean.semantics, f.semantics)
+    assert torch.equal(clean.instance_pixels, f.instance_pixels)
+    assert torch.equal(
+        SyntheticScene(SEED, image_size=CUSTOM_SIZE).instance_pixels(1), f.instance_pixels
+    )
+
+
+VISIBLE_PIXELS = 10  # a class is visible in a frame with this many pixels over six cameras
+
+
+@pytest.mark.slow
+def test_humans_and_cycles_visible_in_every_seed() -> None:
+    """Bicycles, motorcycles and pedestrians are each visible (>= 10 pixels of agents of the
+    class inside the Occ3D grid, over the six default-size cameras) in at least four of the
+    five frames of the default clip, in each of the seeds 0 .. 49; the riders, placed behind
+    the ego in the back camera's view, in all five."""
+    visible = {kind: [] for kind in HCM}
+    for seed in range(50):
+        s = SyntheticScene(seed)
+        for offset in s.offsets:
+            time = offset * s.frame_dt
+            counts = torch.bincount(s.instance_pixels(offset).flatten(), minlength=22)
+            to_ego = torch.linalg.inv(s.ego_pose(time))
+            for kind in HCM:
+                pixels = 0
+                for a in s.agents:
+                    x, y = (to_ego @ a.pose(time))[:2, 3].tolist()
+                    if a.kind == kind and abs(x) < 40 and abs(y) < 40:
+                        pixels += int(counts[a.instance_id])
+                visible[kind].append(pixels >= VISIBLE_PIXELS)
+    for kind, flags in visible.items():
+        per_seed = torch.tensor(flags).view(50, 5).sum(1)
+        assert int(per_seed.min()) >= 4, (kind, per_seed.tolist())
+        if kind != "pedestrian":
+            assert int(per_seed.min()) == 5, (kind, per_seed.tolist())
+
+
+def subset(solids: Primitives, mask: torch.Tensor) -> Primitives:
+    return Primitives(*(getattr(solids, f.name)[mask] for f in dataclasses.fields(Primitives)))
+
+
+def assert_riders_clear(s: SyntheticScene, time: float) -> None:
+    """At ``time``, every bicycle and motorcycle stands on the driveable surface, off the
+    sidewalks, and shares no point (voxel centres 0.125 m apart) with any other solid but
+    the ground."""
+    solids, ids = place(s, time), solid_instances(s, time)
+    road = (solids.labels == L.DRIVEABLE_SURFACE).nonzero().squeeze(1)
+    sidewalk = (solids.labels == L.SIDEWALK).nonzero().squeeze(1)
+    for agent in s.agents:
+        if agent.kind not in ("bicycle", "motorcycle"):
+            continue
+        x, y = (agent.pose(time)[:2, 3] * 8).round().div(8).tolist()
+        grid = VoxelGrid((x - 2.0, y - 2.0, -0.5), (x + 2.0, y + 2.0, 2.5), 0.125)
+        mine = ids == agent.instance_id
+        others = ~mine & ~torch.isin(solids.labels, GROUND_LABELS)
+        body = subset(solids, mine).rasterize_index(grid, 0.0) >= 0
+        rest = subset(solids, others).rasterize_index(grid, 0.0) >= 0
+        assert int(body.sum()) > 50
+        assert not bool((body & rest).any()), (agent.kind, time)
+        points = grid.index_to_world(body.nonzero(), dtype=torch.float32)
+        assert float(points[:, 2].min()) > 0  # above the ground ...
+        below = points.clone()
+        below[:, 2] = -0.05
+        d = solids.signed_distance(
+            road.repeat(below.shape[0]), below.repeat_interleave(road.shape[0], 0)
+        ).view(-1, road.shape[0])
+        assert bool((d.min(-1).values < 0).all()), (agent.kind, time)  # ... on the road
+        d = solids.signed_distance(
+            sidewalk.repeat(points.shape[0]), points.repeat_interleave(sidewalk.shape[0], 0)
+        )
+        assert bool((d > 0).all()), (agent.kind, time)  # off the sidewalks
+
+
+@settings(max_examples=5)
+@given(st.integers(0, 2**31 - 1))
+def test_riders_ride_on_the_road_clear_of_everything(seed: int) -> None:
+    """Every bicycle and motorcycle, at every frame of the clip: on the road, clear of the
+    other agents and of static solids (the motorcycle rides between the ego lane's vehicles
+    and the oncoming ones)."""
+    s = SyntheticScene(seed, image_size=TINY_SIZE, num_cyclists=4)
+    kinds = [a.kind for a in s.agents if a.kind in ("bicycle", "motorcycle")]
+    assert kinds == ["bicycle", "motorcycle"] * 2
+    for offset in s.offsets:
+        assert_riders_clear(s, offset * s.frame_dt)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 20, 43])
+def test_riders_follow_the_ego_within_the_grid(seed: int) -> None:
+    """Regression: the motorcycle rode inside the far parking lane, hidden behind parked
+    vehicles, and bicycles slipped into the blind spots beside the ego. The k-th rider of
+    each kind now follows the ego 6 + 12 k to 13 + 12 k m behind it at time 0 (give or take
+    1.5 m over the clip), bicycles right of the ego lane, the motorcycle left of it."""
+    s = SyntheticScene(seed, image_size=TINY_SIZE)
+    riders = s.agents[-3:]
+    assert [a.kind for a in riders] == ["bicycle", "motorcycle", "bicycle"]
+    for offset in s.offsets:
+        time = offset * s.frame_dt
+        to_ego = torch.linalg.inv(s.ego_pose(time))
+        for a, k in zip(riders, (0, 0, 1), strict=True):
+            x, y, _ = (to_ego @ a.pose(time))[:3, 3].tolist()
+            assert -14.5 - 12 * k <= x <= -4.5 - 12 * k, (a.kind, x)
+            assert y == (1.75 if a.kind == "motorcycle" else -1.6)
+            assert a.heading == 0.0 and a.moving
+    assert 3.5 <= riders[1].speed <= 6.5  # the ego's 5 m/s, give or take 1.5

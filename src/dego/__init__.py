@@ -40,6 +40,7 @@ from dego.gaussians import (
     build_precisions,
     normalize_quaternions,
     quaternions_to_rotation_matrices,
+    rotation_matrices_to_quaternions,
 )
 from dego.grid import VoxelGrid
 from dego.metrics import (
@@ -114,6 +115,7 @@ __all__ = [
     "positional_encoding",
     "protocol_classes",
     "quaternions_to_rotation_matrices",
+    "rotation_matrices_to_quaternions",
     "save_occ3d_labels",
     "splat",
     "voxelize",

@@ -91,6 +91,72 @@ def build_precisions(
     return _gram_of_scaled_rotation(quats, scales.reciprocal())
 
 
+@typechecked
+def rotation_matrices_to_quaternions(
+    rotations: Float[Tensor, "*batch 3 3"],
+) -> Float[Tensor, "*batch 4"]:
+    """Unit wxyz quaternions ``(*, 4)`` with ``w >= 0`` of rotation matrices ``(*, 3, 3)``.
+
+    Each quaternion is read off the largest of ``1 + trace``, ``1 + 2 R_ii - trace`` (the
+    squared components times 4), so the division never approaches zero.
+    """
+    r = rotations
+    trace = r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2]
+    candidates = torch.stack(
+        [
+            torch.stack(
+                [
+                    1 + trace,
+                    r[..., 2, 1] - r[..., 1, 2],
+                    r[..., 0, 2] - r[..., 2, 0],
+                    r[..., 1, 0] - r[..., 0, 1],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    r[..., 2, 1] - r[..., 1, 2],
+                    1 + 2 * r[..., 0, 0] - trace,
+                    r[..., 0, 1] + r[..., 1, 0],
+                    r[..., 0, 2] + r[..., 2, 0],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    r[..., 0, 2] - r[..., 2, 0],
+                    r[..., 0, 1] + r[..., 1, 0],
+                    1 + 2 * r[..., 1, 1] - trace,
+                    r[..., 1, 2] + r[..., 2, 1],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    r[..., 1, 0] - r[..., 0, 1],
+                    r[..., 0, 2] + r[..., 2, 0],
+                    r[..., 1, 2] + r[..., 2, 1],
+                    1 + 2 * r[..., 2, 2] - trace,
+                ],
+                -1,
+            ),
+        ],
+        -2,
+    )  # (*, 4, 4): row k is 4 q_k q
+    best = torch.stack(
+        [
+            1 + trace,
+            1 + 2 * r[..., 0, 0] - trace,
+            1 + 2 * r[..., 1, 1] - trace,
+            1 + 2 * r[..., 2, 2] - trace,
+        ],
+        -1,
+    ).argmax(-1)
+    picked = torch.take_along_dim(candidates, best[..., None, None], dim=-2).squeeze(-2)
+    quats = _normalize(picked)
+    return torch.where(quats[..., :1] < 0, -quats, quats)
+
+
 # ----------------------------------------------------------------------------------------
 # GaussianSet
 # ----------------------------------------------------------------------------------------
@@ -236,6 +302,42 @@ class GaussianSet:
     def to(self, *args: Any, **kwargs: Any) -> GaussianSet:
         """Apply ``Tensor.to(*args, **kwargs)`` to every field (device and/or float dtype)."""
         return self._map(lambda _, t: t.to(*args, **kwargs))
+
+    @typechecked
+    def transformed(self, matrix: Float[Tensor, "*mbatch 4 4"]) -> GaussianSet:
+        """The set under the rigid motion ``x -> R x + t`` of ``matrix`` (``(4, 4)`` or
+        one per batch item, ``(*batch, 4, 4)``): means move, orientations rotate, scales,
+        opacities and features are unchanged. E.g. world -> ego of another frame."""
+        if matrix.shape[:-2] not in ((), tuple(self.batch_shape)):
+            raise ValueError(
+                f"matrix: expected shape (4, 4) or (*batch, 4, 4) with batch "
+                f"{tuple(self.batch_shape)}, got {tuple(matrix.shape)}"
+            )
+        matrix = matrix.to(self.means)
+        r = matrix[..., :3, :3]
+        identity = torch.eye(3, dtype=r.dtype, device=r.device)
+        tolerance = 1e-4 if r.dtype == torch.float32 else 1e-8
+        if not bool(torch.isfinite(matrix).all()) or not bool(
+            ((r @ r.transpose(-1, -2) - identity).abs() <= tolerance).all()
+            & (torch.linalg.det(r) > 0).all()
+        ):
+            raise ValueError(
+                "matrix: expected finite rigid motions (a rotation in the upper-left 3x3, "
+                "orthonormal with determinant +1)"
+            )
+        rotation, translation = matrix[..., None, :3, :3], matrix[..., None, :3, 3]
+        means = (rotation @ self.means.unsqueeze(-1)).squeeze(-1) + translation
+        turn = rotation_matrices_to_quaternions(matrix[..., :3, :3])[..., None, :]
+        w1, v1 = turn[..., :1], turn[..., 1:]
+        w2, v2 = self.quats[..., :1], self.quats[..., 1:]
+        quats = torch.cat(
+            [
+                w1 * w2 - (v1 * v2).sum(-1, keepdim=True),
+                w1 * v2 + w2 * v1 + torch.linalg.cross(v1.expand_as(v2), v2),
+            ],
+            -1,
+        )
+        return dataclasses.replace(self, means=means, quats=quats)
 
     def detach(self) -> GaussianSet:
         """A copy whose tensors are detached from the autograd graph."""
@@ -439,4 +541,5 @@ __all__ = [
     "build_precisions",
     "normalize_quaternions",
     "quaternions_to_rotation_matrices",
+    "rotation_matrices_to_quaternions",
 ]

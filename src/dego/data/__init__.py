@@ -11,7 +11,13 @@ from dego.data.occ3d import (
     save_occ3d_labels,
 )
 from dego.data.primitives import Primitives
-from dego.data.synthetic import CAMERAS, LIDAR_ORIGIN, SyntheticFrame, SyntheticScene
+from dego.data.synthetic import (
+    CAMERAS,
+    LIDAR_ORIGIN,
+    SyntheticAgent,
+    SyntheticFrame,
+    SyntheticScene,
+)
 
 __all__ = [
     "CAMERAS",
@@ -22,6 +28,7 @@ __all__ = [
     "Occ3DLabels",
     "Occ3DSample",
     "Primitives",
+    "SyntheticAgent",
     "SyntheticFrame",
     "SyntheticScene",
     "load_occ3d_labels",

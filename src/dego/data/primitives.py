@@ -3,7 +3,8 @@
 A :class:`Primitives` set holds P solids with a kind, a centre, a rotation (local to
 world), local half-extents and a label. It answers, vectorised over solids and
 points/rays: signed distances, first ray hits (:meth:`Primitives.intersect`) and a voxel
-label grid (:meth:`Primitives.rasterize`). Where solids overlap, the later one wins.
+label grid (:meth:`Primitives.rasterize`, with the winning solid's index from
+:meth:`Primitives.rasterize_index`). Where solids overlap, the later one wins.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ BOX, CYLINDER, ELLIPSOID = 0, 1, 2
 Ellipsoid: radii (a, b, c)."""
 
 _PAIR_CHUNK = 1 << 22  # (solid, point) or (solid, ray) pairs evaluated at a time
+_RAY_BLOCK = 32  # consecutive rays screened together against the solids' bounding spheres
 
 
 def yaw_matrix(yaw: Tensor) -> Tensor:
@@ -164,60 +166,33 @@ class Primitives:
         o = (rot_t @ (origins - self.centers[owner]).unsqueeze(-1)).squeeze(-1)
         d = (rot_t @ directions.unsqueeze(-1)).squeeze(-1)
         size, kind = self.sizes[owner], self.kinds[owner]
-        inf = torch.full_like(o[:, 0], math.inf)
-        # box: slabs
-        inv = 1.0 / torch.where(d == 0, torch.full_like(d, 1e-30), d)
-        t0, t1 = (-size - o) * inv, (size - o) * inv
-        near = torch.minimum(t0, t1).max(-1).values
-        far = torch.maximum(t0, t1).min(-1).values
-        box = torch.where((near <= far) & (far >= 0), near.clamp_min(0), inf)
-        # ellipsoid: unit sphere after scaling
-        os, ds = o / size, d / size
-        ellipsoid = _quadratic_entry(
-            ds.square().sum(-1), (os * ds).sum(-1), os.square().sum(-1) - 1
-        )
-        # cylinder: infinite cylinder in xy, cut by the z slab
-        r, h = size[:, 0], size[:, 2]
-        a = d[:, :2].square().sum(-1)
-        b = (o[:, :2] * d[:, :2]).sum(-1)
-        c = o[:, :2].square().sum(-1) - r.square()
-        disc = b.square() - a * c
-        root = disc.clamp_min(0).sqrt()
-        safe_a = torch.where(a > 1e-20, a, torch.ones_like(a))
-        side_in, side_out = (-b - root) / safe_a, (-b + root) / safe_a
-        parallel = a <= 1e-20  # ray along the axis: inside the circle or never
-        side_in = torch.where(parallel, torch.where(c <= 0, -inf, inf), side_in)
-        side_out = torch.where(parallel, torch.where(c <= 0, inf, -inf), side_out)
-        side_in = torch.where(disc < 0, inf, side_in)
-        side_out = torch.where(disc < 0, -inf, side_out)
-        dz = torch.where(d[:, 2] == 0, torch.full_like(d[:, 2], 1e-30), d[:, 2])
-        z0, z1 = (-h - o[:, 2]) / dz, (h - o[:, 2]) / dz
-        cap_in, cap_out = torch.minimum(z0, z1), torch.maximum(z0, z1)
-        enter, leave = torch.maximum(side_in, cap_in), torch.minimum(side_out, cap_out)
-        cylinder = torch.where((enter <= leave) & (leave >= 0), enter.clamp_min(0), inf)
-        return torch.where(kind == BOX, box, torch.where(kind == CYLINDER, cylinder, ellipsoid))
+        t = torch.full_like(o[:, 0], math.inf)
+        for k, entry in (
+            (BOX, _box_entry),
+            (CYLINDER, _cylinder_entry),
+            (ELLIPSOID, _ellipsoid_entry),
+        ):
+            pairs = (kind == k).nonzero().squeeze(1)  # each kind on its own pairs only
+            if pairs.numel():
+                t[pairs] = entry(o[pairs], d[pairs], size[pairs])
+        return t
 
     def intersect(self, origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """First hit of each ray ``(R, 3)`` among all solids: ``(t (R,), index (R,))`` with
         ``t`` in units of ``directions`` (``inf`` and index -1 where nothing is hit).
-        Ray-solid pairs are screened with bounding spheres first."""
+        Ray-solid pairs are screened with (slightly enlarged) bounding spheres first,
+        for blocks of consecutive rays (as cones), then for single rays."""
         r = origins.shape[0]
         best = torch.full((r,), math.inf)
         index = torch.full((r,), -1, dtype=torch.long)
         if len(self) == 0 or r == 0:
             return best, index
-        radius = self.bounding_radius()
+        centers = self.centers.double()
+        reach = self.bounding_radius().double() * (1 + 1e-4) + 1e-4  # enlarged: rounding
         step = max(1, _PAIR_CHUNK // len(self))
         for start in range(0, r, step):
             o, d = origins[start : start + step], directions[start : start + step]
-            rel = self.centers[None] - o[:, None]  # (r, P, 3)
-            dd = d.square().sum(-1, keepdim=True)  # (r, 1)
-            along = (rel * d[:, None]).sum(-1) / dd  # closest approach parameter
-            closest = rel - along.unsqueeze(-1) * d[:, None]
-            near_sphere = (closest.square().sum(-1) <= radius.square()) & (
-                (along >= 0) | (rel.square().sum(-1) <= radius.square())
-            )
-            ray, owner = near_sphere.nonzero(as_tuple=True)
+            ray, owner = _near_pairs(centers, reach, o.double(), d.double())
             t = self._hit_parameter(owner, o[ray], d[ray])
             chunk_best = torch.full((o.shape[0],), math.inf).scatter_reduce(
                 0, ray, t, "amin", include_self=True
@@ -232,9 +207,9 @@ class Primitives:
         return best, index
 
     # -- voxels -----------------------------------------------------------------------
-    def rasterize(self, grid: VoxelGrid, margin: float) -> Tensor:
-        """``(X, Y, Z)`` uint8 labels: a voxel takes the label of the last solid whose
-        signed distance at the voxel centre is <= ``margin``; free (17) elsewhere."""
+    def rasterize_index(self, grid: VoxelGrid, margin: float) -> Tensor:
+        """``(X, Y, Z)`` int64 index of the solid each voxel takes: the last solid whose
+        signed distance at the voxel centre is <= ``margin``; -1 where there is none."""
         x, y, z = grid.shape
         lower = torch.tensor(grid.lower)
         size = torch.tensor(grid.voxel_size)
@@ -266,8 +241,102 @@ class Primitives:
             flat = (index[:, 0] * y + index[:, 1]) * z + index[:, 2]
             winner.scatter_reduce_(0, flat[inside], owner[inside], "amax")
             first = last
+        return winner.view(x, y, z)
+
+    def rasterize(self, grid: VoxelGrid, margin: float) -> Tensor:
+        """``(X, Y, Z)`` uint8 labels: a voxel takes the label of the last solid whose
+        signed distance at the voxel centre is <= ``margin``; free (17) elsewhere (the
+        labels of :meth:`rasterize_index`)."""
+        winner = self.rasterize_index(grid, margin)
         labels = torch.where(winner >= 0, self.labels[winner.clamp_min(0)], FREE_LABEL)
-        return labels.to(torch.uint8).view(x, y, z)
+        return labels.to(torch.uint8)
+
+
+def _near_pairs(
+    centers: Tensor, reach: Tensor, origins: Tensor, directions: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``(ray, solid)`` index pairs (float64 inputs) where ray ``origins + t directions``,
+    ``t >= 0``, passes within ``reach`` of a solid's centre (sphere screening). Blocks of
+    :data:`_RAY_BLOCK` consecutive rays are screened first: their rays lie in a cone (the
+    block's spread of directions) from a ball around the block's mean origin, and a sphere
+    that misses that region misses each of the block's rays; then every ray of a block's
+    remaining pairs is screened on its own."""
+    n = origins.shape[0]
+    norm = torch.linalg.vector_norm(directions, dim=-1)
+    unit = directions / norm.clamp_min(1e-300)[:, None]
+    block = min(_RAY_BLOCK, n)
+    blocks = -(-n // block)
+    pad = blocks * block - n  # repeat the last ray: it does not widen the block
+    o = torch.cat([origins, origins[-1:].expand(pad, 3)]).view(blocks, block, 3)
+    u = torch.cat([unit, unit[-1:].expand(pad, 3)]).view(blocks, block, 3)
+    apex = o.mean(1)
+    spread = torch.linalg.vector_norm(o - apex[:, None], dim=-1).amax(1)
+    axis = u.sum(1)
+    axis_norm = torch.linalg.vector_norm(axis, dim=-1)
+    axis = axis / axis_norm.clamp_min(1e-300)[:, None]
+    cos_half = (u * axis[:, None]).sum(-1).amin(1).clamp(-1, 1)
+    half = torch.where(axis_norm > 1e-6, torch.acos(cos_half), math.pi)  # (B,)
+    v = centers[None] - apex[:, None]  # (B, P, 3)
+    dist = torch.linalg.vector_norm(v, dim=-1).clamp_min(1e-300)
+    radius = reach[None] + spread[:, None]
+    angle = torch.acos(((v * axis[:, None]).sum(-1) / dist).clamp(-1, 1))
+    seen = torch.asin((radius / dist).clamp_max(1))  # the sphere's angular radius
+    near_block = (dist <= radius) | (angle <= half[:, None] + seen + 1e-6)
+    # every ray of a block that starts inside the sphere passes (the big ground solids)
+    inside = (dist + spread[:, None]) * (1 + 1e-9) <= reach[None]
+    b, owner = inside.nonzero(as_tuple=True)
+    ray = (b[:, None] * block + torch.arange(block)).flatten()
+    owner = owner[:, None].expand(-1, block).flatten()
+    # the other rays one by one: the line passes within reach, the sphere is not behind
+    b_check, owner_check = (near_block & ~inside).nonzero(as_tuple=True)
+    rel = centers[owner_check][:, None] - o[b_check]  # (K, block, 3)
+    along = (rel * u[b_check]).sum(-1)
+    r = reach[owner_check][:, None]
+    near = (rel.square().sum(-1) - along.square() <= r.square()) & (along >= -r)
+    k, j = near.nonzero(as_tuple=True)
+    ray = torch.cat([ray, b_check[k] * block + j])
+    owner = torch.cat([owner, owner_check[k]])
+    keep = (ray < n) & (norm[ray.clamp_max(n - 1)] > 0)
+    return ray[keep], owner[keep]
+
+
+def _box_entry(o: Tensor, d: Tensor, size: Tensor) -> Tensor:
+    """Entry parameters of local rays ``o + t d`` ``(M, 3)`` into boxes: slabs."""
+    inv = 1.0 / torch.where(d == 0, torch.full_like(d, 1e-30), d)
+    t0, t1 = (-size - o) * inv, (size - o) * inv
+    near = torch.minimum(t0, t1).max(-1).values
+    far = torch.maximum(t0, t1).min(-1).values
+    return torch.where((near <= far) & (far >= 0), near.clamp_min(0), math.inf)
+
+
+def _ellipsoid_entry(o: Tensor, d: Tensor, size: Tensor) -> Tensor:
+    """Entry parameters into ellipsoids: the unit sphere after scaling."""
+    os, ds = o / size, d / size
+    return _quadratic_entry(ds.square().sum(-1), (os * ds).sum(-1), os.square().sum(-1) - 1)
+
+
+def _cylinder_entry(o: Tensor, d: Tensor, size: Tensor) -> Tensor:
+    """Entry parameters into cylinders about local z: the infinite cylinder in xy, cut by
+    the z slab."""
+    inf = torch.full_like(o[:, 0], math.inf)
+    r, h = size[:, 0], size[:, 2]
+    a = d[:, :2].square().sum(-1)
+    b = (o[:, :2] * d[:, :2]).sum(-1)
+    c = o[:, :2].square().sum(-1) - r.square()
+    disc = b.square() - a * c
+    root = disc.clamp_min(0).sqrt()
+    safe_a = torch.where(a > 1e-20, a, torch.ones_like(a))
+    side_in, side_out = (-b - root) / safe_a, (-b + root) / safe_a
+    parallel = a <= 1e-20  # ray along the axis: inside the circle or never
+    side_in = torch.where(parallel, torch.where(c <= 0, -inf, inf), side_in)
+    side_out = torch.where(parallel, torch.where(c <= 0, inf, -inf), side_out)
+    side_in = torch.where(disc < 0, inf, side_in)
+    side_out = torch.where(disc < 0, -inf, side_out)
+    dz = torch.where(d[:, 2] == 0, torch.full_like(d[:, 2], 1e-30), d[:, 2])
+    z0, z1 = (-h - o[:, 2]) / dz, (h - o[:, 2]) / dz
+    cap_in, cap_out = torch.minimum(z0, z1), torch.maximum(z0, z1)
+    enter, leave = torch.maximum(side_in, cap_in), torch.minimum(side_out, cap_out)
+    return torch.where((enter <= leave) & (leave >= 0), enter.clamp_min(0), inf)
 
 
 def _quadratic_entry(a: Tensor, b: Tensor, c: Tensor) -> Tensor:

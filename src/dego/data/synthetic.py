@@ -6,7 +6,9 @@ barriers, traffic cones, parked and moving vehicles (rigid), walking pedestrians
 cyclists / motorcyclists with moving limbs (nonrigid), all built from analytic solids
 (:mod:`dego.data.primitives`). Every frame gives six surround camera images, pseudo
 depth and semantics ray-cast from the solids, the Occ3D-style ground truth grid in that
-frame's ego coordinates with camera and LiDAR visibility masks, and the poses.
+frame's ego coordinates with camera and LiDAR visibility masks, and the poses. Every
+agent is an instance (:class:`SyntheticAgent`, :attr:`SyntheticScene.agents`): frames also
+give per-voxel and per-pixel instance ids and the agents' poses.
 
 Label conventions: Occ3D-nuScenes (17 = free). Riders carry the label of their bicycle
 or motorcycle (as nuScenes boxes include the rider). Pixels that hit nothing (sky) have
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -74,6 +77,16 @@ class SyntheticFrame:
         mask_camera: ``(X, Y, Z)`` bool: voxels seen by camera rays, up to and including
             the first occupied voxel.
         mask_lidar: ``(X, Y, Z)`` bool: the same for the LiDAR rays.
+        instances: ``(X, Y, Z)`` int64 agent instance ids (:attr:`SyntheticAgent.instance_id`)
+            in this frame's ego grid: the id of the agent that owns the voxel's winning solid
+            (the solid that gives ``occupancy`` its label), 0 where the voxel is free or
+            taken by a static solid. Where it is k > 0, ``occupancy`` is
+            ``scene.agents[k - 1].label``.
+        instance_pixels: ``(V, H, W)`` int64 instance id of the first solid each pixel's ray
+            hits (0 for static solids and sky), from the exact ray cast: ground truth, not
+            affected by ``label_noise``.
+        agent_poses: ``(A, 4, 4)`` float64 agent -> world poses of every agent of
+            ``scene.agents`` at this frame's time (:meth:`SyntheticAgent.pose`).
     """
 
     time: float
@@ -88,6 +101,9 @@ class SyntheticFrame:
     occupancy: Tensor
     mask_camera: Tensor
     mask_lidar: Tensor
+    instances: Tensor
+    instance_pixels: Tensor
+    agent_poses: Tensor
 
 
 def _boxes(
@@ -110,17 +126,75 @@ def _segment_ellipsoids(a: Tensor, b: Tensor, radius: float, label: int) -> Prim
     return Primitives.make(ELLIPSOID, (a + b) / 2, axis_to_matrix(axis), sizes, label)
 
 
-@dataclasses.dataclass(frozen=True)
-class _Agent:
-    """A moving agent: kind, start position, heading, speed, label, gait phase."""
+# the kinds of SyntheticAgent and their Occ3D labels; the articulated kinds' limbs move
+_AGENT_LABELS = {
+    "car": L.CAR,
+    "truck": L.TRUCK,
+    "bus": L.BUS,
+    "trailer": L.TRAILER,
+    "construction_vehicle": L.CONSTRUCTION_VEHICLE,
+    "pedestrian": L.PEDESTRIAN,
+    "bicycle": L.BICYCLE,
+    "motorcycle": L.MOTORCYCLE,
+}
+_ARTICULATED = frozenset({"pedestrian", "bicycle", "motorcycle"})
 
+
+@dataclasses.dataclass(frozen=True)
+class SyntheticAgent:
+    """A moving (or parked) agent of a :class:`SyntheticScene`: one instance.
+
+    Attributes:
+        instance_id: 1-based instance id (0 means "no agent" in the instance grids), the
+            agent's position in :attr:`SyntheticScene.agents` plus one.
+        kind: ``"car"``, ``"truck"``, ``"bus"``, ``"trailer"``, ``"construction_vehicle"``,
+            ``"pedestrian"``, ``"bicycle"`` or ``"motorcycle"``.
+        label: its Occ3D label.
+        articulated: True for pedestrians, bicycles and motorcycles (their limbs move, so
+            their shape changes over time); False for the rigid vehicles.
+        position: ``(x, y)`` in metres in the world (the reference ego frame) at time 0.
+        heading: yaw in radians (0 = +x).
+        speed: metres per second along the heading (0: parked).
+        phase: gait or crank angle at time 0 (radians; 0 for vehicles).
+        shade: brightness factor of its solids in the images.
+    """
+
+    instance_id: int
     kind: str
+    label: int
+    articulated: bool
     position: tuple[float, float]
     heading: float
     speed: float
-    label: int
     phase: float
     shade: float
+
+    def __post_init__(self) -> None:
+        check_int("instance_id", self.instance_id, 1)
+        if self.kind not in _AGENT_LABELS:
+            raise ValueError(f"kind: expected one of {sorted(_AGENT_LABELS)}, got {self.kind!r}")
+
+    @property
+    def moving(self) -> bool:
+        """Whether the agent moves (``speed > 0``)."""
+        return self.speed > 0
+
+    def pose(self, time: float) -> Tensor:
+        """``(4, 4)`` float64 agent -> world (the reference ego frame) at ``time`` seconds:
+        a yaw by ``heading`` and the translation ``(position + speed * time * forward, 0)``.
+        """
+        _check_time(time)
+        distance = self.speed * float(time)
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[:3, :3] = yaw_matrix(torch.tensor(self.heading, dtype=torch.float64))
+        pose[0, 3] = self.position[0] + distance * math.cos(self.heading)
+        pose[1, 3] = self.position[1] + distance * math.sin(self.heading)
+        return pose
+
+
+def _check_time(time: object) -> None:
+    if isinstance(time, bool) or not isinstance(time, numbers.Real) or not math.isfinite(time):
+        raise ValueError(f"time: expected a finite number of seconds, got {time!r}")
 
 
 class SyntheticScene:
@@ -135,12 +209,22 @@ class SyntheticScene:
         num_vehicles: vehicles (parked or moving), >= 5: the first five are a car, a truck,
             a bus, a trailer and a construction vehicle, so every vehicle class occurs.
         num_pedestrians: walking pedestrians, >= 1.
-        num_cyclists: riders, >= 2, alternately on a bicycle and on a motorcycle.
+        num_cyclists: riders, >= 2, alternately on a bicycle and on a motorcycle. They
+            follow the ego (the k-th of each kind 6 + 12 k to 13 + 12 k metres behind it at
+            time 0), bicycles right of the ego lane, motorcycles left of it, in sight of the
+            back camera, so that every class of humans and cycles is seen in most frames.
         ego_speed: the ego's speed along +x (m/s).
         label_noise: pseudo-label noise: the probability that a pixel on a class boundary
             takes a neighbour's label. 0 (default) gives exact labels.
         depth_noise: pseudo-depth noise: the relative depth error at 10 m (it grows
             linearly with distance). 0 (default) gives exact depth.
+
+    The solids of a frame are public: :attr:`static_primitives` then, for each agent of
+    :attr:`agents`, ``agent_shape(agent, time)`` placed with ``frame.agent_poses`` (world
+    coordinates, float32 as :meth:`Primitives.transformed` gives them), then moved into the
+    frame's ego coordinates with ``inverse(frame.ego_pose)`` and rasterized with a margin of
+    a quarter voxel: that is exactly ``frame.occupancy`` (and the winning solids' agents are
+    ``frame.instances``).
     """
 
     def __init__(
@@ -295,16 +379,34 @@ class SyntheticScene:
         )
         return Primitives.cat(parts)
 
-    def _build_agents(self, vehicles: int, pedestrians: int, cyclists: int) -> list[_Agent]:
-        agents = []
+    def _build_agents(
+        self, vehicles: int, pedestrians: int, cyclists: int
+    ) -> tuple[SyntheticAgent, ...]:
+        agents: list[SyntheticAgent] = []
+
+        def add(
+            kind: str,
+            position: tuple[float, float],
+            heading: float,
+            speed: float,
+            phase: float,
+            shade: float,
+        ) -> None:
+            agents.append(
+                SyntheticAgent(
+                    instance_id=len(agents) + 1,
+                    kind=kind,
+                    label=int(_AGENT_LABELS[kind]),
+                    articulated=kind in _ARTICULATED,
+                    position=(float(position[0]), float(position[1])),
+                    heading=float(heading),
+                    speed=float(speed),
+                    phase=float(phase),
+                    shade=float(shade),
+                )
+            )
+
         vehicle_types = ["car", "truck", "bus", "trailer", "construction_vehicle"]
-        labels = {
-            "car": L.CAR,
-            "truck": L.TRUCK,
-            "bus": L.BUS,
-            "trailer": L.TRAILER,
-            "construction_vehicle": L.CONSTRUCTION_VEHICLE,
-        }
         taken: dict[float, list[tuple[float, float]]] = {}  # parked intervals per lane
         for i in range(vehicles):
             kind = vehicle_types[i] if i < len(vehicle_types) else ("car", "truck")[i % 2]
@@ -327,9 +429,7 @@ class SyntheticScene:
                     if ahead
                     else self._uniform(low, self.ego_speed)
                 )
-            agents.append(
-                _Agent(kind, (x, y), heading, speed, labels[kind], 0.0, self._uniform(0.6, 1.0))
-            )
+            add(kind, (x, y), heading, speed, 0.0, self._uniform(0.6, 1.0))
         for i in range(pedestrians):
             if i % 3 == 2:  # crossing the street on the crosswalk
                 position = (self.crossing_x + self._uniform(-2, 2), self._uniform(-5, 5))
@@ -338,32 +438,25 @@ class SyntheticScene:
                 side = -6.0 if i % 2 else 7.5
                 position = (self._uniform(-35, 35), side + self._uniform(-0.8, 0.8))
                 heading = 0.0 if self._rand() < 0.5 else math.pi
-            agents.append(
-                _Agent(
-                    "pedestrian",
-                    position,
-                    heading,
-                    self._uniform(1.1, 1.6),
-                    L.PEDESTRIAN,
-                    self._uniform(0, 2 * math.pi),
-                    self._uniform(0.6, 1.0),
-                )
-            )
+            speed = self._uniform(1.1, 1.6)
+            phase = self._uniform(0, 2 * math.pi)
+            add("pedestrian", position, heading, speed, phase, self._uniform(0.6, 1.0))
         for i in range(cyclists):
-            motor = i % 2 == 1
-            y, heading = (-1.6, 0.0) if i % 2 == 0 else (5.0, math.pi)
-            agents.append(
-                _Agent(
-                    "motorcycle" if motor else "bicycle",
-                    (self._uniform(-30, 30), y),
-                    heading,
-                    self._uniform(8, 12) if motor else self._uniform(3.5, 6),
-                    L.MOTORCYCLE if motor else L.BICYCLE,
-                    self._uniform(0, 2 * math.pi),
-                    self._uniform(0.6, 1.0),
-                )
-            )
-        return agents
+            # riders follow the ego in its direction, the k-th of each kind 6 + 12 k to
+            # 13 + 12 k m behind it, in plain sight of the back camera and never in the ego's
+            # blind spots beside it: bicycles right of the ego lane, motorcycles left of it
+            # (between the ego lane's vehicles, |y| <= 1.3, and the oncoming ones, y >= 2.2)
+            motor, k = i % 2 == 1, i // 2
+            x = -(6 + 12 * k + self._uniform(0, 7))
+            if motor:  # about the ego's speed: it stays behind the ego over the clip
+                low = max(self.ego_speed - 1.5, 0.0)
+                speed = self._uniform(low, self.ego_speed + 1.5)
+            else:
+                speed = self._uniform(3.5, 6)
+            phase = self._uniform(0, 2 * math.pi)
+            kind, y = ("motorcycle", 1.75) if motor else ("bicycle", -1.6)
+            add(kind, (x, y), 0.0, speed, phase, self._uniform(0.6, 1.0))
+        return tuple(agents)
 
     def _parking_spot(
         self, lane: float, length: float, taken: dict[float, list[tuple[float, float]]]
@@ -484,23 +577,47 @@ class SyntheticScene:
         )
         return Primitives.cat([wheels, frame, rider])
 
-    def _agents_at(self, time: float) -> Primitives:
-        parts = []
+    @property
+    def agents(self) -> tuple[SyntheticAgent, ...]:
+        """Every agent, in instance order: ``agents[i].instance_id == i + 1``."""
+        return self._agents
+
+    @property
+    def static_primitives(self) -> Primitives:
+        """The static solids (ground, buildings, vegetation, barriers, cones, others) in
+        world coordinates; the first solids of :meth:`primitives` at any time."""
+        return self._static
+
+    def agent_shape(self, agent: SyntheticAgent, time: float) -> Primitives:
+        """The solids of ``agent`` in its own frame (x forward, ground at z = 0) at ``time``
+        seconds, shaded by ``agent.shade``: vehicles do not depend on the time, pedestrians
+        and riders have the limbs of that time's gait or crank phase. Placed with
+        ``pose = agent.pose(time)`` (``shape.transformed(pose[:3, :3], pose[:3, 3])``) they
+        are the agent's solids in :meth:`primitives`."""
+        if not isinstance(agent, SyntheticAgent):
+            raise ValueError(f"agent: expected a SyntheticAgent, got {type(agent).__name__}")
+        _check_time(time)
+        if agent.kind == "pedestrian":
+            cadence = 2 * math.pi * 0.9 * agent.speed / 1.3  # steps per second ~ speed
+            shape = self._person(agent.phase + cadence * time, agent.label)
+        elif agent.kind in ("bicycle", "motorcycle"):
+            crank = agent.phase + 2 * math.pi * agent.speed / 2.0 * time
+            shape = self._cycle(agent.kind == "motorcycle", crank, agent.label)
+        else:
+            shape = self._vehicle(agent.kind, agent.label)
+        return dataclasses.replace(shape, shades=shape.shades * agent.shade)
+
+    def _solids_at(self, time: float) -> tuple[Primitives, Tensor]:
+        """Every solid at ``time`` in world coordinates (static scene first, then the agents
+        in instance order) and its ``(P,)`` int64 instance id (0 for static solids)."""
+        parts = [self._static]
+        ids = [torch.zeros(len(self._static), dtype=torch.long)]
         for agent in self._agents:
-            heading = torch.tensor(agent.heading)
-            forward = torch.tensor([math.cos(agent.heading), math.sin(agent.heading), 0.0])
-            position = torch.tensor([*agent.position, 0.0]) + agent.speed * time * forward
-            if agent.kind == "pedestrian":
-                cadence = 2 * math.pi * 0.9 * agent.speed / 1.3  # steps per second ~ speed
-                shape = self._person(agent.phase + cadence * time, agent.label)
-            elif agent.kind in ("bicycle", "motorcycle"):
-                crank = agent.phase + 2 * math.pi * agent.speed / 2.0 * time
-                shape = self._cycle(agent.kind == "motorcycle", crank, agent.label)
-            else:
-                shape = self._vehicle(agent.kind, agent.label)
-            moved = shape.transformed(yaw_matrix(heading), position)
-            parts.append(dataclasses.replace(moved, shades=moved.shades * agent.shade))
-        return Primitives.cat(parts)
+            pose = agent.pose(time)
+            shape = self.agent_shape(agent, time)
+            parts.append(shape.transformed(pose[:3, :3], pose[:3, 3]))
+            ids.append(torch.full((len(shape),), agent.instance_id, dtype=torch.long))
+        return Primitives.cat(parts), torch.cat(ids)
 
     # -- poses and cameras ------------------------------------------------------------
     def ego_pose(self, time: float) -> Tensor:
@@ -538,47 +655,81 @@ class SyntheticScene:
 
     def primitives(self, time: float) -> Primitives:
         """Every solid at ``time`` seconds, in world coordinates (static scene first)."""
-        return Primitives.cat([self._static, self._agents_at(time)])
+        _check_time(time)
+        return self._solids_at(time)[0]
 
     # -- frames -----------------------------------------------------------------------
-    def frame(self, offset: int) -> SyntheticFrame:
-        """The frame at integer ``offset`` (one of ``self.offsets``)."""
+    def _check_offset(self, offset: object) -> float:
+        """The time of frame ``offset`` (one of ``self.offsets``)."""
         if isinstance(offset, bool) or not isinstance(offset, int) or offset not in self.offsets:
             raise ValueError(f"offset: expected one of {self.offsets}, got {offset!r}")
-        time = offset * self.frame_dt
-        ego_pose = self.ego_pose(time)
-        world_to_ego = torch.linalg.inv(ego_pose)
-        solids = self.primitives(time).transformed(world_to_ego[:3, :3], world_to_ego[:3, 3])
-        occupancy = solids.rasterize(self.grid, _VOXEL_MARGIN * min(self.grid.voxel_size))
+        return offset * self.frame_dt
 
+    def _ego_solids(self, time: float) -> tuple[Primitives, Tensor]:
+        """Every solid at ``time`` in that time's ego coordinates, and its instance id."""
+        world_to_ego = torch.linalg.inv(self.ego_pose(time))
+        solids, ids = self._solids_at(time)
+        return solids.transformed(world_to_ego[:3, :3], world_to_ego[:3, 3]), ids
+
+    def _camera_rays(self) -> tuple[Tensor, Tensor]:
+        """``(V * H * W, 3)`` ego-frame origins (float64) and directions (float32) of the
+        pixel centres' rays, with camera z = 1 (the ray parameter is the z-depth)."""
         cam_to_ego, k = self.camera_to_ego(), self.intrinsics()
         h, w = self.image_size
         v_idx, u_idx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
         pixels = torch.stack([u_idx + 0.5, v_idx + 0.5, torch.ones(h, w)], -1).double()
-        rays_cam = pixels.reshape(-1, 3) @ torch.linalg.inv(k[0]).T  # z = 1: t is z-depth
+        rays_cam = pixels.reshape(-1, 3) @ torch.linalg.inv(k[0]).T
         directions = torch.einsum("vij,rj->vri", cam_to_ego[:, :3, :3], rays_cam)
         origins = cam_to_ego[:, None, :3, 3].expand_as(directions)
-        t, index = solids.intersect(
-            origins.reshape(-1, 3).float(), directions.reshape(-1, 3).float()
-        )
+        return origins.reshape(-1, 3), directions.reshape(-1, 3).float()
+
+    @staticmethod
+    def _pixel_instances(index: Tensor, ids: Tensor, shape: tuple[int, ...]) -> Tensor:
+        return torch.where(index >= 0, ids[index.clamp_min(0)], 0).view(shape)
+
+    def instance_pixels(self, offset: int) -> Tensor:
+        """``(V, H, W)`` int64 instance id of the first solid each pixel's ray hits in frame
+        ``offset`` (0 for static solids and sky): :attr:`SyntheticFrame.instance_pixels`
+        without building the rest of the frame (only the camera ray cast)."""
+        time = self._check_offset(offset)
+        solids, ids = self._ego_solids(time)
+        origins, directions = self._camera_rays()
+        _, index = solids.intersect(origins.float(), directions)
+        return self._pixel_instances(index, ids, (len(CAMERAS), *self.image_size))
+
+    def frame(self, offset: int) -> SyntheticFrame:
+        """The frame at integer ``offset`` (one of ``self.offsets``)."""
+        time = self._check_offset(offset)
+        ego_pose = self.ego_pose(time)
+        solids, ids = self._ego_solids(time)
+        winner = solids.rasterize_index(self.grid, _VOXEL_MARGIN * min(self.grid.voxel_size))
+        occupied = winner >= 0
+        # the labels and instances of the winning solids (Primitives.rasterize's rule)
+        occupancy = torch.where(occupied, solids.labels[winner.clamp_min(0)], FREE_LABEL)
+        occupancy = occupancy.to(torch.uint8)
+        instances = torch.where(occupied, ids[winner.clamp_min(0)], 0)
+
+        h, w = self.image_size
+        shape = (len(CAMERAS), h, w)
+        origins, directions = self._camera_rays()
+        t, index = solids.intersect(origins.float(), directions)
         hit = index >= 0
-        depth = torch.where(hit, t, 0.0).view(len(CAMERAS), h, w)
-        semantics = torch.where(hit, solids.labels[index.clamp_min(0)], FREE_LABEL)
-        semantics = semantics.view(len(CAMERAS), h, w)
+        depth = torch.where(hit, t, 0.0).view(shape)
+        semantics = torch.where(hit, solids.labels[index.clamp_min(0)], FREE_LABEL).view(shape)
+        instance_pixels = self._pixel_instances(index, ids, shape)
         images = self._shade(
             semantics, depth, torch.where(hit, solids.shades[index.clamp_min(0)], 1.0)
         )
         depth, semantics = self._pseudo_label_noise(depth, semantics, offset)
 
         labels = occupancy.long()
-        mask_camera = observed_voxels(
-            labels, origins.reshape(-1, 3), directions.reshape(-1, 3).float(), self.grid
-        )
+        mask_camera = observed_voxels(labels, origins, directions, self.grid)
         lidar = torch.tensor(LIDAR_ORIGIN, dtype=torch.float64)
         mask_lidar = observed_voxels(
             labels, lidar.expand_as(self._lidar_rays), self._lidar_rays, self.grid
         )
-        world_to_cam = torch.linalg.inv(ego_pose @ cam_to_ego)
+        world_to_cam = torch.linalg.inv(ego_pose @ self.camera_to_ego())
+        agent_poses = torch.stack([agent.pose(time) for agent in self._agents])
         return SyntheticFrame(
             time=time,
             offset=offset,
@@ -586,12 +737,15 @@ class SyntheticScene:
             depth=depth.float(),
             semantics=semantics,
             world_to_cam=world_to_cam.float(),
-            intrinsics=k.float(),
+            intrinsics=self.intrinsics().float(),
             ego_pose=ego_pose.float(),
             lidar_origin=lidar.float(),
             occupancy=occupancy,
             mask_camera=mask_camera,
             mask_lidar=mask_lidar,
+            instances=instances,
+            instance_pixels=instance_pixels,
+            agent_poses=agent_poses,
         )
 
     def frames(self) -> list[SyntheticFrame]:
@@ -629,4 +783,10 @@ class SyntheticScene:
         return depth, torch.where(swap, neighbour, semantics)
 
 
-__all__ = ["CAMERAS", "LIDAR_ORIGIN", "SyntheticFrame", "SyntheticScene"]
+__all__ = [
+    "CAMERAS",
+    "LIDAR_ORIGIN",
+    "SyntheticAgent",
+    "SyntheticFrame",
+    "SyntheticScene",
+]

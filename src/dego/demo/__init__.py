@@ -6,7 +6,20 @@ and a :class:`~dego.DecoupledDeformation` to the pseudo labels; :func:`predict_l
 :func:`score_labels` voxelise and score the result.
 """
 
-from dego.demo.clip import DemoClip, backproject
+from dego.demo.clip import DEMO_FRAME_DT, DemoClip, backproject
+from dego.demo.evaluate import (
+    DYNAMIC_GROUPS,
+    LIFT_SCALE,
+    ClipScore,
+    DynamicCounts,
+    dynamic_counts,
+    dynamic_regions,
+    lift_labels,
+    lifted_clip_labels,
+    predict_clip,
+    score_clip,
+    to_ego,
+)
 from dego.demo.fit import (
     LOSS_TERMS,
     VARIANTS,
@@ -15,12 +28,18 @@ from dego.demo.fit import (
     build_deformation,
     fit_scene,
     gaussians_at,
+    initial_model,
     mask_by_group,
     render,
     rigidity_mask,
     weak_losses,
 )
-from dego.demo.model import GaussianSceneModel, nearest_neighbour_distance
+from dego.demo.model import (
+    ALLOCATIONS,
+    MOVABLE_CLASSES,
+    GaussianSceneModel,
+    nearest_neighbour_distance,
+)
 from dego.demo.score import (
     OCCUPANCY_THRESHOLD,
     VariantScore,
@@ -30,24 +49,39 @@ from dego.demo.score import (
 )
 
 __all__ = [
+    "ALLOCATIONS",
+    "DEMO_FRAME_DT",
+    "DYNAMIC_GROUPS",
+    "LIFT_SCALE",
     "LOSS_TERMS",
+    "MOVABLE_CLASSES",
     "OCCUPANCY_THRESHOLD",
     "VARIANTS",
+    "ClipScore",
     "DemoClip",
+    "DynamicCounts",
     "FitConfig",
     "FitResult",
     "GaussianSceneModel",
     "VariantScore",
     "backproject",
     "build_deformation",
+    "dynamic_counts",
+    "dynamic_regions",
     "fit_scene",
     "format_table",
     "gaussians_at",
+    "initial_model",
+    "lift_labels",
+    "lifted_clip_labels",
     "mask_by_group",
     "nearest_neighbour_distance",
+    "predict_clip",
     "predict_labels",
     "render",
     "rigidity_mask",
+    "score_clip",
     "score_labels",
+    "to_ego",
     "weak_losses",
 ]

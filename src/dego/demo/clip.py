@@ -12,25 +12,41 @@ from dego.data.synthetic import LIDAR_ORIGIN, SyntheticScene
 from dego.grid import VoxelGrid
 from dego.metrics.rayiou import lidar_origins
 
+DEMO_FRAME_DT = 0.2
+"""Seconds between the demo's frames (5 Hz; nuScenes keyframes are 2 Hz). Fitting one
+scene by gradient descent has no correspondences: it can only follow an agent whose
+image overlaps between neighbouring frames. At 0.2 s a pedestrian moves about 0.3 m and
+a cyclist about 1 m, less than their size; at 0.5 s the cyclists move 2-3 m and the fit
+loses them (measured on development seeds)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class DemoClip:
     """Every frame of a :class:`~dego.data.SyntheticScene`, stacked over time.
 
     The world frame is the reference frame's ego frame (offset 0), so the ground-truth
-    grid of the reference frame and canonical Gaussians live in the same coordinates.
+    grid of the reference frame and canonical Gaussians live in the same coordinates;
+    frame t's ground truth is in frame t's ego coordinates (``ego_poses[t]``: ego ->
+    world).
 
     Attributes:
         times: ``(T,)`` frame offsets (integers stored as floats; 0 = reference).
         reference: index of offset 0 in ``times``.
         world_to_cam: ``(T, V, 4, 4)``. intrinsics: ``(T, V, 3, 3)``.
+        ego_poses: ``(T, 4, 4)`` ego -> world of every frame.
         images: ``(T, V, 3, H, W)`` RGB, for pictures only.
         depth: ``(T, V, H, W)`` pseudo depth (0 = nothing hit). semantics: ``(T, V, H, W)``
             pseudo labels (17 = nothing hit).
         supervised: ``(T, V, H, W)`` pixels the losses use: sky, or a pseudo-depth point
             inside ``grid`` (surfaces beyond the grid have no Gaussians to explain them).
-        occupancy, mask_camera: the reference frame's ``(X, Y, Z)`` ground truth, for
-            scoring only. ray_origins: ``(K, 3)`` RayIoU origins (reference ego frame).
+        occupancy, mask_camera, instances: every frame's ``(T, X, Y, Z)`` ground truth
+            labels, camera mask and agent instance ids (0 = no agent), for scoring only.
+        instance_pixels: ``(T, V, H, W)`` agent instance id of each pixel (0 = none),
+            ground truth, for analysis only (never seen by the fit).
+        agent_labels, agent_articulated, agent_moving: ``(A,)`` per agent (instance id
+            ``a + 1``): Occ3D label, whether its shape changes over time (pedestrians,
+            cyclists), whether it moves.
+        ray_origins: ``(K, 3)`` RayIoU origins (reference ego frame).
         grid: the voxel grid of ``occupancy``.
     """
 
@@ -38,35 +54,54 @@ class DemoClip:
     reference: int
     world_to_cam: Float[Tensor, "T V 4 4"]
     intrinsics: Float[Tensor, "T V 3 3"]
+    ego_poses: Float[Tensor, "T 4 4"]
     images: Float[Tensor, "T V 3 H W"]
     depth: Float[Tensor, "T V H W"]
     semantics: Int[Tensor, "T V H W"]
     supervised: Bool[Tensor, "T V H W"]
-    occupancy: Int[Tensor, "X Y Z"]
-    mask_camera: Bool[Tensor, "X Y Z"]
+    occupancy: Int[Tensor, "T X Y Z"]
+    mask_camera: Bool[Tensor, "T X Y Z"]
+    instances: Int[Tensor, "T X Y Z"]
+    instance_pixels: Int[Tensor, "T V H W"]
+    agent_labels: Int[Tensor, " A"]
+    agent_articulated: Bool[Tensor, " A"]
+    agent_moving: Bool[Tensor, " A"]
     ray_origins: Float[Tensor, "K 3"]
     grid: VoxelGrid
 
     @classmethod
     def from_scene(cls, scene: SyntheticScene) -> DemoClip:
-        """Render every frame of ``scene`` (about a second per frame on a CPU)."""
+        """Render every frame of ``scene`` (about two seconds per frame on a CPU)."""
         frames = scene.frames()
         reference = scene.offsets.index(0)
         stack = {
             name: torch.stack([getattr(f, name) for f in frames])
-            for name in ("world_to_cam", "intrinsics", "images", "depth", "semantics")
+            for name in (
+                "world_to_cam",
+                "intrinsics",
+                "images",
+                "depth",
+                "semantics",
+                "mask_camera",
+                "instances",
+                "instance_pixels",
+            )
         }
         points = backproject(stack["depth"], stack["world_to_cam"], stack["intrinsics"])
         inside = scene.grid.contains(points) & (stack["depth"] > 0)
         lidar_to_ego = torch.eye(4, dtype=torch.float64).repeat(len(frames), 1, 1)
         lidar_to_ego[:, :3, 3] = torch.tensor(LIDAR_ORIGIN, dtype=torch.float64)
         ego_poses = torch.stack([f.ego_pose.double() for f in frames])
+        agents = scene.agents
         return cls(
             times=torch.tensor([float(f.offset) for f in frames]),
             reference=reference,
+            ego_poses=ego_poses.float(),
             supervised=inside | (stack["depth"] == 0),
-            occupancy=frames[reference].occupancy.long(),
-            mask_camera=frames[reference].mask_camera,
+            occupancy=torch.stack([f.occupancy.long() for f in frames]),
+            agent_labels=torch.tensor([a.label for a in agents], dtype=torch.long),
+            agent_articulated=torch.tensor([a.articulated for a in agents], dtype=torch.bool),
+            agent_moving=torch.tensor([a.moving for a in agents], dtype=torch.bool),
             ray_origins=lidar_origins(ego_poses, lidar_to_ego, reference).float(),
             grid=scene.grid,
             **stack,

@@ -16,14 +16,16 @@ from dego._checks import check_int, check_positive
 from dego.classes import CLASS_GROUPS
 from dego.deformation import DecoupledDeformation, deformation_loss
 from dego.demo.clip import DemoClip
-from dego.demo.model import GaussianSceneModel
+from dego.demo.model import ALLOCATIONS, MOVABLE_CLASSES, Allocation, GaussianSceneModel
 from dego.gaussians import GaussianSet
 from dego.splatting import SplatOutput, splat
 
-Variant = Literal["rigid", "decoupled"]
-VARIANTS: tuple[Variant, ...] = ("rigid", "decoupled")
-"""``rigid``: position offsets only (rigidity mask fixed at 0, the GaussianFlowOcc-style
-baseline); ``decoupled``: DeGO's learned rigid / nonrigid mask and full deformation."""
+Variant = Literal["static", "rigid", "decoupled"]
+VARIANTS: tuple[Variant, ...] = ("static", "rigid", "decoupled")
+"""``static``: no deformation at all (the canonical Gaussians are used at every frame;
+only the ego moves); ``rigid``: position offsets only (rigidity mask fixed at 0, the
+GaussianFlowOcc-style baseline); ``decoupled``: DeGO's learned rigid / nonrigid mask and
+full deformation."""
 
 LOSS_TERMS = ("total", "semantics", "depth", "deformation")
 
@@ -41,6 +43,22 @@ class FitConfig:
         depth_weight: weight of the L1 depth loss (per metre).
         deformation_weight: weight of ``deformation_loss(...)["total"]``.
         seed: seeds the initialisation and the frame order.
+        cameras_per_step: cameras of the frame rendered per step, a seeded random subset
+            (``None``: all six). Fewer cameras make a step cheaper (3: half the cost).
+        allocation, class_balance, semantic_prior: the initialisation of
+            :meth:`GaussianSceneModel.from_clip`.
+        warmup: the first ``warmup`` fraction of iterations, frames other than the
+            reference train the deformation (and latent features) only: the canonical
+            Gaussians get no gradient from them, so that a moving agent is not explained
+            away (made transparent or relabelled) before the deformation has learnt to
+            follow it.
+        freeze_movable: at frames other than the reference, the canonical Gaussians
+            whose most likely class is movable (:data:`MOVABLE_CLASSES`) get no gradient
+            for the whole fit: where such an agent is at time t is the deformation's job,
+            while static classes still learn from every frame's views.
+        mask_sparsity: weight of an optional prior ``mean(m)`` on the rigidity mask that
+            prefers rigid unless shape change is needed (0: the paper's formulation,
+            which has no such term). Only the ``decoupled`` variant has a mask.
     """
 
     iterations: int = 600
@@ -55,14 +73,21 @@ class FitConfig:
             "quats": 0.01,
             "log_scales": 0.01,
             "opacity_logits": 0.05,
-            "semantic_logits": 0.1,
+            "semantic_logits": 0.03,
             "latent": 0.01,
-            "deformation": 0.002,
+            "deformation": 0.01,
         }
     )
     depth_weight: float = 0.1
     deformation_weight: float = 0.1
     seed: int = 0
+    cameras_per_step: int | None = 3
+    allocation: Allocation = "class_balanced"
+    class_balance: float = 0.3
+    semantic_prior: float = 0.5
+    mask_sparsity: float = 0.0
+    warmup: float = 0.5
+    freeze_movable: bool = True
 
     def __post_init__(self) -> None:
         check_int("iterations", self.iterations, 0)
@@ -71,7 +96,21 @@ class FitConfig:
             check_int(name, getattr(self, name), 0 if name in ("latent_dim", "seed") else 1)
         for name, value in self.lr.items():
             check_positive(f"lr[{name!r}]", value)
-        for name in ("depth_weight", "deformation_weight"):
+        if self.cameras_per_step is not None:
+            check_int("cameras_per_step", self.cameras_per_step, 1)
+        if self.allocation not in ALLOCATIONS:
+            raise ValueError(f"allocation: expected one of {ALLOCATIONS}, got {self.allocation!r}")
+        if not 0 <= self.class_balance <= 1:
+            raise ValueError(
+                f"class_balance: expected a number in [0, 1], got {self.class_balance!r}"
+            )
+        if not 0 <= self.semantic_prior < 1:
+            raise ValueError(
+                f"semantic_prior: expected a number in [0, 1), got {self.semantic_prior!r}"
+            )
+        if not 0 <= self.warmup <= 1:
+            raise ValueError(f"warmup: expected a fraction in [0, 1], got {self.warmup!r}")
+        for name in ("depth_weight", "deformation_weight", "mask_sparsity"):
             value = getattr(self, name)
             if not math.isfinite(value) or value < 0:
                 raise ValueError(f"{name}: expected a finite weight >= 0, got {value!r}")
@@ -83,22 +122,26 @@ class FitResult:
 
     Attributes:
         variant: ``"rigid"`` or ``"decoupled"``.
-        model: the fitted canonical Gaussians. deformation: the fitted network.
+        model: the fitted canonical Gaussians. deformation: the fitted network
+            (``None`` for ``static``).
         history: per-iteration values of each term in :data:`LOSS_TERMS`.
         seconds: wall-clock time of the fit.
     """
 
     variant: Variant
     model: GaussianSceneModel
-    deformation: DecoupledDeformation
+    deformation: DecoupledDeformation | None
     history: dict[str, list[float]]
     seconds: float
 
 
 @torch.no_grad()
 def rigidity_mask(result: FitResult) -> Float[Tensor, " N"]:
-    """The fitted per-Gaussian mask m (1 = nonrigid; ``paper`` preset: time-independent)."""
+    """The fitted per-Gaussian mask m (1 = nonrigid; ``paper`` preset: time-independent;
+    0 everywhere for ``static``)."""
     model = result.model
+    if result.deformation is None:
+        return model.means.new_zeros(model.num_gaussians).detach()
     times = model.means.new_zeros(1)
     return result.deformation(model.gaussians(), model.latent[None], times).rigid_mask[0]
 
@@ -114,10 +157,15 @@ def mask_by_group(mask: Float[Tensor, " N"], model: GaussianSceneModel) -> dict[
     return summary
 
 
-def build_deformation(variant: Variant, config: FitConfig, clip: DemoClip) -> DecoupledDeformation:
-    """The ``paper``-preset network of ``variant`` (``rigid``: ``fixed_mask=0``)."""
+def build_deformation(
+    variant: Variant, config: FitConfig, clip: DemoClip
+) -> DecoupledDeformation | None:
+    """The ``paper``-preset network of ``variant`` (``rigid``: ``fixed_mask=0``;
+    ``static``: none)."""
     if variant not in VARIANTS:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
+    if variant == "static":
+        return None
     largest_offset = float(clip.times.abs().max().clamp_min(1))
     return DecoupledDeformation(
         config.latent_dim,
@@ -130,28 +178,41 @@ def build_deformation(variant: Variant, config: FitConfig, clip: DemoClip) -> De
 
 
 def gaussians_at(
-    model: GaussianSceneModel, deformation: DecoupledDeformation, clip: DemoClip, index: int
+    model: GaussianSceneModel,
+    deformation: DecoupledDeformation | None,
+    clip: DemoClip,
+    index: int,
+    mask_sparsity: float = 0.0,
 ) -> tuple[GaussianSet, dict[str, Tensor] | None]:
-    """The ``(1, N)`` Gaussians at frame ``index`` and their deformation losses.
+    """The ``(1, N)`` Gaussians at frame ``index`` (world coordinates) and their
+    deformation losses.
 
     The reference frame is the canonical set itself (no deformation, no loss); every
-    other frame deforms it to that frame's time offset.
+    other frame deforms it to that frame's time offset (``deformation=None``: it does
+    not, the ``static`` variant). ``mask_sparsity`` adds ``mask_sparsity * mean(m)`` to
+    the loss ``total`` (also reported as ``"sparsity"``).
     """
     canonical = model.gaussians()
-    if index == clip.reference:
+    if index == clip.reference or deformation is None:
         return canonical, None
     output = deformation(canonical, model.latent[None], clip.times[index : index + 1])
-    return output.at(0), deformation_loss(output)
+    losses = deformation_loss(output)
+    if deformation.fixed_mask is None and mask_sparsity > 0:
+        losses["sparsity"] = output.rigid_mask.mean()
+        losses["total"] = losses["total"] + mask_sparsity * losses["sparsity"]
+    return output.at(0), losses
 
 
-def render(gaussians: GaussianSet, clip: DemoClip, index: int) -> SplatOutput:
-    """Class probabilities and expected depth of ``gaussians`` in frame ``index``'s cameras."""
-    return splat(
-        gaussians,
-        clip.world_to_cam[index : index + 1],
-        clip.intrinsics[index : index + 1],
-        clip.image_size,
-    )
+def render(
+    gaussians: GaussianSet, clip: DemoClip, index: int, cameras: Tensor | None = None
+) -> SplatOutput:
+    """Class probabilities and expected depth of ``gaussians`` in frame ``index``'s cameras
+    (``cameras``: indices of a subset, default all)."""
+    world_to_cam = clip.world_to_cam[index : index + 1]
+    intrinsics = clip.intrinsics[index : index + 1]
+    if cameras is not None:
+        world_to_cam, intrinsics = world_to_cam[:, cameras], intrinsics[:, cameras]
+    return splat(gaussians, world_to_cam, intrinsics, clip.image_size)
 
 
 def weak_losses(
@@ -196,17 +257,18 @@ def fit_scene(
     """
     config = config or FitConfig()
     generator = torch.Generator().manual_seed(config.seed)
-    model = GaussianSceneModel.from_clip(
-        clip, config.num_gaussians, latent_dim=config.latent_dim, generator=generator
-    )
+    model = initial_model(clip, config, generator)
     torch.manual_seed(config.seed)  # the deformation network's initial weights
-    deformation = build_deformation(variant, config, clip).to(clip.depth.device)
+    deformation = build_deformation(variant, config, clip)
+    if deformation is not None:
+        deformation = deformation.to(clip.depth.device)
     groups = [
         {"params": [getattr(model, name)], "lr": config.lr[name]}
         for name in ("means", "quats", "log_scales", "opacity_logits", "semantic_logits")
     ]
     groups.append({"params": [model.latent], "lr": config.lr["latent"]})
-    groups.append({"params": list(deformation.parameters()), "lr": config.lr["deformation"]})
+    if deformation is not None:
+        groups.append({"params": list(deformation.parameters()), "lr": config.lr["deformation"]})
     optimizer = torch.optim.Adam(groups)
 
     history: dict[str, list[float]] = {term: [] for term in LOSS_TERMS}
@@ -216,27 +278,92 @@ def fit_scene(
         if not order:
             order = torch.randperm(clip.num_frames, generator=generator).tolist()
         index = order.pop()
-        gaussians, deformation_terms = gaussians_at(model, deformation, clip, index)
-        losses = weak_losses(
-            render(gaussians, clip, index),
-            clip.depth[index],
-            clip.semantics[index],
-            clip.supervised[index],
-        )
-        losses["deformation"] = (
-            deformation_terms["total"] if deformation_terms else losses["depth"].new_zeros(())
-        )
+        frozen = iteration < config.warmup * config.iterations
+        losses = _frame_losses(model, deformation, clip, index, config, generator, frozen)
         losses["total"] = (
             losses["semantics"]
             + config.depth_weight * losses["depth"]
             + config.deformation_weight * losses["deformation"]
         )
         optimizer.zero_grad(set_to_none=True)
-        losses["total"].backward()
-        optimizer.step()
+        if losses["total"].requires_grad:  # not so for static during the warm-up
+            losses["total"].backward()
+            optimizer.step()
         values = {term: losses[term].item() for term in LOSS_TERMS}
         for term in LOSS_TERMS:
             history[term].append(values[term])
         if progress is not None:
             progress(iteration, values)
     return FitResult(variant, model, deformation, history, time.perf_counter() - start)
+
+
+def _frame_losses(
+    model: GaussianSceneModel,
+    deformation: DecoupledDeformation | None,
+    clip: DemoClip,
+    index: int,
+    config: FitConfig,
+    generator: torch.Generator,
+    frozen: bool = False,
+) -> dict[str, Tensor]:
+    """Semantics, depth and deformation losses of frame ``index`` on a camera subset;
+    ``frozen``: the canonical Gaussians get no gradient from this frame."""
+    deformation_model: GaussianSceneModel | _FrozenCanonical = model
+    if index != clip.reference and (frozen or config.freeze_movable):
+        deformation_model = _FrozenCanonical(model, movable_only=not frozen)
+    gaussians, deformation_terms = gaussians_at(
+        deformation_model, deformation, clip, index, config.mask_sparsity
+    )
+    num_cameras = clip.world_to_cam.shape[1]
+    cameras = None
+    if config.cameras_per_step is not None and config.cameras_per_step < num_cameras:
+        cameras = torch.randperm(num_cameras, generator=generator)[: config.cameras_per_step]
+    losses = weak_losses(
+        render(gaussians, clip, index, cameras),
+        *(
+            x[index] if cameras is None else x[index][cameras.to(x.device)]
+            for x in (clip.depth, clip.semantics, clip.supervised)
+        ),
+    )
+    losses["deformation"] = (
+        deformation_terms["total"] if deformation_terms else losses["depth"].new_zeros(())
+    )
+    return losses
+
+
+class _FrozenCanonical:
+    """A model view whose canonical Gaussians are detached (the latent is not): all of
+    them, or (``movable_only``) those whose most likely class is movable."""
+
+    def __init__(self, model: GaussianSceneModel, movable_only: bool = False) -> None:
+        self.latent = model.latent
+        self._model, self._movable_only = model, movable_only
+
+    def gaussians(self) -> GaussianSet:
+        gaussians = self._model.gaussians()
+        if not self._movable_only:
+            return gaussians.detach()
+        classes = self._model.semantic_logits.detach().argmax(-1)
+        movable = torch.isin(classes, torch.tensor(MOVABLE_CLASSES, device=classes.device))
+
+        def freeze(name: str, field: Tensor) -> Tensor:
+            keep = movable[None] if name == "opacities" else movable[None, :, None]
+            return torch.where(keep, field.detach(), field)
+
+        return gaussians._map(freeze)
+
+
+def initial_model(
+    clip: DemoClip, config: FitConfig, generator: torch.Generator | None = None
+) -> GaussianSceneModel:
+    """The untrained model :func:`fit_scene` starts from (the same draw for the same
+    ``generator`` state)."""
+    return GaussianSceneModel.from_clip(
+        clip,
+        config.num_gaussians,
+        latent_dim=config.latent_dim,
+        allocation=config.allocation,
+        balance=config.class_balance,
+        semantic_prior=config.semantic_prior,
+        generator=generator,
+    )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
@@ -12,7 +14,12 @@ from dego.demo.clip import DemoClip, backproject
 from dego.gaussians import GaussianSet
 
 NUM_OCCUPIED = FREE_LABEL  # labels 0..16 are occupied classes, 17 is free space
-_MIN_SCALE, _MAX_SCALE = 0.05, 2.0  # metres: bounds of the initial nearest-neighbour scales
+_MIN_SCALE, _MAX_SCALE = 0.05, 1.0  # metres: bounds of the initial nearest-neighbour scales
+MOVABLE_CLASSES = (2, 3, 4, 5, 6, 7, 9, 10)
+"""Classes that may move (bicycle, bus, car, construction vehicle, motorcycle, pedestrian,
+trailer, truck): where they are depends on the time of the frame."""
+Allocation = Literal["area", "class_balanced"]
+ALLOCATIONS: tuple[Allocation, ...] = ("area", "class_balanced")
 
 
 class GaussianSceneModel(nn.Module):
@@ -72,34 +79,75 @@ class GaussianSceneModel(nn.Module):
         num_gaussians: int,
         *,
         latent_dim: int = 16,
+        allocation: Allocation = "class_balanced",
+        balance: float = 0.3,
+        semantic_prior: float = 0.5,
         generator: torch.Generator | None = None,
     ) -> GaussianSceneModel:
         """Gaussians on the clip's pseudo-depth surfaces (the only geometry it is given).
 
-        ``num_gaussians`` supervised pixels of every frame and camera are drawn with
-        probability proportional to depth^2 (a pixel's footprint grows with depth^2, so the
-        draw is about uniform over the visible surface area) and lifted to 3D; each
-        Gaussian starts isotropic, its scale the mean distance to its 3 nearest neighbours.
-        Semantics start near uniform: the labels are learnt, not copied.
+        ``num_gaussians`` supervised surface pixels are drawn without replacement and
+        lifted to 3D; each Gaussian starts isotropic, its scale the mean distance to its 3
+        nearest neighbours. Within a class a pixel is drawn with probability proportional
+        to depth^2 (its footprint, so the draw is about uniform over visible surface
+        area). ``allocation`` decides how the budget is split between classes:
+
+        - ``"area"``: by visible area, over every frame (a pedestrian gets a few
+          Gaussians in thousands);
+        - ``"class_balanced"`` (default): each pseudo class gets a share proportional to
+          its visible area to the power ``balance`` (0: equal shares; 1: by area; the
+          default 0.3 flattens them), and movable classes (vehicles, people,
+          cycles) are drawn from the reference frame only, where the canonical
+          Gaussians live; static classes from every frame.
+
+        ``semantic_prior`` p: a Gaussian's class probabilities start at
+        ``p * onehot(pseudo label of its pixel) + (1 - p) / 17`` (0: near uniform, the
+        labels are learnt from scratch). Both use the pseudo labels only.
         """
         check_int("num_gaussians", num_gaussians, 1)
-        surface = clip.supervised & (clip.depth > 0)
+        if allocation not in ALLOCATIONS:
+            raise ValueError(f"allocation: expected one of {ALLOCATIONS}, got {allocation!r}")
+        if not (isinstance(balance, int | float) and 0 <= balance <= 1):
+            raise ValueError(f"balance: expected a number in [0, 1], got {balance!r}")
+        if not 0 <= semantic_prior < 1:
+            raise ValueError(f"semantic_prior: expected a number in [0, 1), got {semantic_prior!r}")
+        labels = clip.semantics
+        surface = clip.supervised & (clip.depth > 0) & (labels < NUM_OCCUPIED)
+        if allocation == "class_balanced":
+            at_reference = torch.zeros_like(surface)
+            at_reference[clip.reference] = True
+            movable = torch.isin(labels, torch.tensor(MOVABLE_CLASSES, device=labels.device))
+            surface = surface & (at_reference | ~movable)
         points = backproject(clip.depth, clip.world_to_cam, clip.intrinsics)[surface]
         if points.shape[0] < num_gaussians:
             raise ValueError(
                 f"num_gaussians: the clip has only {points.shape[0]} surface pixels inside "
                 f"the grid, got num_gaussians={num_gaussians}"
             )
-        weights = clip.depth[surface].square()
+        pixel_labels = labels[surface]
+        weights = clip.depth[surface].square().double()
+        if allocation == "class_balanced":
+            area = torch.zeros(NUM_OCCUPIED, dtype=weights.dtype, device=weights.device)
+            area.index_add_(0, pixel_labels, weights)
+            share = torch.where(area > 0, area.clamp_min(1e-12) ** balance, 0)
+            share = share / share.sum()
+            weights = weights * (share / area.clamp_min(1e-12))[pixel_labels]
         pick = torch.multinomial(weights.cpu(), num_gaussians, generator=generator)
-        means = points[pick.to(points.device)]
+        pick = pick.to(points.device)
+        means = points[pick]
         spacing = nearest_neighbour_distance(means, k=3).clamp(_MIN_SCALE, _MAX_SCALE)
-        return cls(
+        model = cls(
             means,
             spacing[:, None].expand(-1, 3),
             latent_dim=latent_dim,
             generator=generator,
         )
+        if semantic_prior > 0:
+            prior = torch.full_like(model.semantic_logits, (1 - semantic_prior) / NUM_OCCUPIED)
+            prior[torch.arange(num_gaussians), pixel_labels[pick]] += semantic_prior
+            with torch.no_grad():
+                model.semantic_logits.add_(prior.log())
+        return model
 
     @property
     def num_gaussians(self) -> int:

@@ -19,13 +19,18 @@ from dego.viz import _new_figure, colorize_labels, compare_bev, save_figure
 CAMERA = 0  # CAM_FRONT
 
 
-def bev_picture(labels: Int[Tensor, "X Y Z"], clip: DemoClip, variant: str, path: Path) -> Path:
-    """Top-down prediction next to the ground truth."""
+def bev_picture(
+    labels: Int[Tensor, "X Y Z"], clip: DemoClip, variant: str, path: Path, index: int | None = None
+) -> Path:
+    """Top-down prediction next to the ground truth of frame ``index`` (default: the
+    reference frame), in that frame's ego coordinates."""
+    index = clip.reference if index is None else index
+    offset = int(clip.times[index])
     figure = compare_bev(
         labels.cpu(),
-        clip.occupancy.cpu(),
+        clip.occupancy[index].cpu(),
         grid=clip.grid,
-        titles=(f"{variant}: prediction", "ground truth"),
+        titles=(f"{variant}: prediction, t = {offset:+d}", f"ground truth, t = {offset:+d}"),
     )
     return save_figure(figure, path, dpi=80)
 

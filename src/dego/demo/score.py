@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
+from typing import Protocol
 
 import torch
 from jaxtyping import Int
@@ -56,17 +58,24 @@ class VariantScore:
 
 @torch.no_grad()
 def score_labels(labels: Int[Tensor, "X Y Z"], clip: DemoClip) -> VariantScore:
-    """Weak-protocol :class:`~dego.OccupancyMetrics` (camera mask) and RayIoU@1/2/4."""
+    """Weak-protocol :class:`~dego.OccupancyMetrics` (camera mask) and RayIoU@1/2/4 of
+    labels at the reference frame."""
+    target = clip.occupancy[clip.reference].cpu()
     metrics = OccupancyMetrics("weak")
-    metrics.update(labels.cpu(), clip.occupancy.cpu(), clip.mask_camera.cpu())
+    metrics.update(labels.cpu(), target, clip.mask_camera[clip.reference].cpu())
     ray_metric = RayIoU()
-    ray_metric.update(labels.cpu(), clip.occupancy.cpu(), clip.ray_origins.cpu())
+    ray_metric.update(labels.cpu(), target, clip.ray_origins.cpu())
     return VariantScore(metrics.compute(), ray_metric.compute())
 
 
-def format_table(rows: dict[str, VariantScore], seconds: dict[str, float] | None = None) -> str:
-    """A Markdown table with one row per variant (percent; NaN where undefined)."""
-    columns = ["IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU"]
+class _Scored(Protocol):
+    def row(self) -> dict[str, float]: ...
+
+
+def format_table(rows: Mapping[str, _Scored], seconds: dict[str, float] | None = None) -> str:
+    """A Markdown table with one row per variant: the columns of the scores' ``row()``
+    (percent; NaN where undefined), and the fit time where ``seconds`` has one."""
+    columns = list(next(iter(rows.values())).row()) if rows else []
     head = "| variant | " + " | ".join(columns) + (" | fit (s) |" if seconds else " |")
     rule = "|---|" + "---:|" * (len(columns) + (1 if seconds else 0))
     lines = [head, rule]

@@ -1,0 +1,440 @@
+"""``dego study``: when does decoupling pay off? Variants x seeds x Gaussian budgets.
+
+For every seed a synthetic clip is rendered; for every total Gaussian budget each
+variant (``static``, ``rigid``, ``decoupled`` and ``decoupled`` with the optional mask
+prior) is fitted from the pseudo labels and scored at every frame (:mod:`dego.demo`).
+The report gives per-variant means with 95% confidence intervals over seeds, the paired
+difference decoupled - rigid on articulated agents at the non-reference frames, and how
+well the learned rigidity mask separates articulated agents from vehicles.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from torch import Tensor
+
+from dego._checks import check_int
+from dego.data.synthetic import SyntheticScene
+from dego.demo.clip import DEMO_FRAME_DT, DemoClip
+from dego.demo.evaluate import predict_clip, score_clip
+from dego.demo.fit import FitConfig, FitResult, fit_scene, rigidity_mask
+
+STUDY_VARIANTS = ("static", "rigid", "decoupled", "decoupled+prior")
+"""``decoupled+prior``: ``decoupled`` with :attr:`StudyConfig.mask_prior` as the weight
+of the mask sparsity prior (:attr:`~dego.demo.FitConfig.mask_sparsity`)."""
+
+METRICS = (
+    "mIoU t=0",
+    "HCM t=0",
+    "mIoU t!=0",
+    "HCM t!=0",
+    "vehicles t!=0",
+    "articulated t!=0",
+)
+"""Per-run scores (percent) the report summarises; see :class:`dego.demo.ClipScore`."""
+
+MASK_METRICS = ("mask articulated", "mask vehicles", "mask static", "mask AUC")
+"""Mean fitted mask on Gaussians of articulated agents / of vehicles / elsewhere, and
+the ROC-AUC of the mask for telling articulated-agent Gaussians from vehicle ones."""
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyConfig:
+    """What :func:`run_study` runs (the defaults are ``dego study`` without ``--quick``).
+
+    Attributes:
+        seeds: scene and fitting seeds.
+        budgets: total numbers of canonical Gaussians, one sweep point each.
+        frames: frames per clip (offsets ``-(frames // 2) ..``).
+        iterations: optimiser steps per fit.
+        variants: a subset of :data:`STUDY_VARIANTS`.
+        mask_prior: the mask sparsity weight of ``decoupled+prior``.
+    """
+
+    seeds: tuple[int, ...] = tuple(range(10))
+    budgets: tuple[int, ...] = (500, 2000)
+    frames: int = 5
+    iterations: int = 100
+    variants: tuple[str, ...] = STUDY_VARIANTS
+    mask_prior: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not self.seeds or not self.budgets or not self.variants:
+            raise ValueError("seeds, budgets, variants: each needs at least one value")
+        for seed in self.seeds:
+            check_int("seeds", seed, 0)
+        for budget in self.budgets:
+            check_int("budgets", budget, 1)
+        check_int("frames", self.frames, 2)
+        check_int("iterations", self.iterations, 0)
+        unknown = sorted(set(self.variants) - set(STUDY_VARIANTS))
+        if unknown:
+            raise ValueError(f"variants: unknown {unknown}; expected some of {STUDY_VARIANTS}")
+        if not (math.isfinite(self.mask_prior) and self.mask_prior >= 0):
+            raise ValueError(f"mask_prior: expected a finite weight >= 0, got {self.mask_prior!r}")
+
+
+QUICK_STUDY = StudyConfig(seeds=(0, 1), budgets=(300,), frames=3, iterations=20)
+"""``dego study --quick``: the tiny settings the tests run."""
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyRun:
+    """One fit: its settings, scores (percent) and mask statistics."""
+
+    seed: int
+    budget: int
+    variant: str
+    scores: dict[str, float]
+    mask: dict[str, float]
+    per_articulated_agent: float
+    seconds: float
+
+
+def roc_auc(positive: Float[Tensor, " P"], negative: Float[Tensor, " Q"]) -> float:
+    """Probability that a random positive scores above a random negative (ties count
+    half): the area under the ROC curve. NaN when either side is empty."""
+    if positive.numel() == 0 or negative.numel() == 0:
+        return math.nan
+    total = 0.0
+    for chunk in positive.split(4096):
+        greater = (chunk[:, None] > negative[None]).sum()
+        equal = (chunk[:, None] == negative[None]).sum()
+        total += float(greater) + 0.5 * float(equal)
+    return total / (positive.numel() * negative.numel())
+
+
+def agent_of_gaussians(result: FitResult, clip: DemoClip) -> Tensor:
+    """``(N,)`` ground-truth agent instance id under each canonical Gaussian's mean at the
+    reference frame (0: none), looked up in the instance grid grown by one voxel."""
+    ids = clip.instances[clip.reference].float()
+    grown = F.max_pool3d(ids[None, None], 3, stride=1, padding=1)[0, 0].long()
+    ids = torch.where(clip.instances[clip.reference] > 0, clip.instances[clip.reference], grown)
+    means = result.model.means.detach()
+    lower = torch.tensor(clip.grid.lower, dtype=means.dtype, device=means.device)
+    size = torch.tensor(clip.grid.voxel_size, dtype=means.dtype, device=means.device)
+    index = torch.floor((means - lower) / size).long()
+    shape = torch.tensor(clip.grid.shape, device=means.device)
+    inside = ((index >= 0) & (index < shape)).all(-1)
+    index = index.clamp(torch.zeros_like(shape), shape - 1)
+    found = ids[index[:, 0], index[:, 1], index[:, 2]]
+    return torch.where(inside, found, torch.zeros_like(found))
+
+
+def mask_statistics(result: FitResult, clip: DemoClip) -> tuple[dict[str, float], float]:
+    """:data:`MASK_METRICS` of a fit, and its mean Gaussians per articulated agent."""
+    mask = rigidity_mask(result).cpu()
+    agent = agent_of_gaussians(result, clip).cpu()
+    index = (agent - 1).clamp_min(0)
+    articulated = (agent > 0) & clip.agent_articulated.cpu()[index]
+    vehicles = (agent > 0) & ~clip.agent_articulated.cpu()[index]
+    elsewhere = agent == 0
+
+    def mean(selected: Tensor) -> float:
+        return float(mask[selected].mean()) if selected.any() else math.nan
+
+    stats = {
+        "mask articulated": mean(articulated),
+        "mask vehicles": mean(vehicles),
+        "mask static": mean(elsewhere),
+        "mask AUC": roc_auc(mask[articulated], mask[vehicles]),
+    }
+    agents = agent[articulated].unique().numel()
+    return stats, (float(articulated.sum()) / agents if agents else 0.0)
+
+
+def run_study(
+    config: StudyConfig,
+    *,
+    progress: Callable[[str], None] | None = None,
+) -> list[StudyRun]:
+    """Fit and score every (seed, budget, variant) of ``config``."""
+    runs = []
+    for seed in config.seeds:
+        clip = DemoClip.from_scene(
+            SyntheticScene(seed, num_frames=config.frames, frame_dt=DEMO_FRAME_DT)
+        )
+        for budget in config.budgets:
+            for variant in config.variants:
+                fit_config = FitConfig(
+                    iterations=config.iterations,
+                    num_gaussians=budget,
+                    seed=seed,
+                    mask_sparsity=config.mask_prior if variant == "decoupled+prior" else 0.0,
+                )
+                result = fit_scene(clip, variant.split("+")[0], fit_config)  # type: ignore[arg-type]
+                row = score_clip(predict_clip(result.model, result.deformation, clip), clip).row()
+                scores = {
+                    "mIoU t=0": row["mIoU"],
+                    "HCM t=0": row["HCM"],
+                    **{name: row[name] for name in METRICS[2:]},
+                }
+                mask, per_agent = mask_statistics(result, clip)
+                run = StudyRun(seed, budget, variant, scores, mask, per_agent, result.seconds)
+                runs.append(run)
+                if progress is not None:
+                    progress(
+                        f"seed {seed} budget {budget} {variant}: articulated t!=0 "
+                        f"{scores['articulated t!=0']:.1f}, {result.seconds:.0f} s"
+                    )
+    return runs
+
+
+# Two-sided 95% quantiles of Student's t for 1..30 degrees of freedom.
+_T975 = (
+    12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
+    2.201, 2.179, 2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086,
+    2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042,
+)  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class Interval:
+    """A mean with its 95% Student-t confidence interval over ``n`` values."""
+
+    mean: float
+    low: float
+    high: float
+    n: int
+
+    def excludes_zero(self) -> bool:
+        return self.n > 1 and (self.low > 0 or self.high < 0)
+
+    def __str__(self) -> str:
+        if math.isnan(self.mean):
+            return "nan"
+        if self.n < 2:
+            return f"{self.mean:.2f}"
+        return f"{self.mean:.2f} [{self.low:.2f}, {self.high:.2f}]"
+
+
+def mean_interval(values: Sequence[float]) -> Interval:
+    """Mean and 95% t-interval of the finite ``values`` (NaNs are dropped)."""
+    finite = [v for v in values if not math.isnan(v)]
+    n = len(finite)
+    if n == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    mean = sum(finite) / n
+    if n == 1:
+        return Interval(mean, math.nan, math.nan, 1)
+    sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1))
+    t = _T975[n - 2] if n - 1 <= len(_T975) else 1.96
+    half = t * sd / math.sqrt(n)
+    return Interval(mean, mean - half, mean + half, n)
+
+
+def paired_differences(
+    runs: Sequence[StudyRun], metric: str, first: str, second: str
+) -> dict[int, Interval]:
+    """Per budget: ``first - second`` on ``metric``, paired by seed, with its interval."""
+    table = {(r.seed, r.budget, r.variant): r for r in runs}
+    out = {}
+    for budget in sorted({r.budget for r in runs}):
+        differences = [
+            table[seed, budget, first].scores[metric] - table[seed, budget, second].scores[metric]
+            for seed in sorted({r.seed for r in runs})
+            if (seed, budget, first) in table and (seed, budget, second) in table
+        ]
+        out[budget] = mean_interval(differences)
+    return out
+
+
+def summarise(runs: Sequence[StudyRun]) -> dict[int, dict[str, dict[str, Interval]]]:
+    """``{budget: {variant: {metric: Interval}}}`` over seeds, scores and mask metrics."""
+    out: dict[int, dict[str, dict[str, Interval]]] = {}
+    for budget in sorted({r.budget for r in runs}):
+        out[budget] = {}
+        variants = [v for v in STUDY_VARIANTS if any(r.variant == v for r in runs)]
+        for variant in variants:
+            chosen = [r for r in runs if r.budget == budget and r.variant == variant]
+            values = {name: mean_interval([r.scores[name] for r in chosen]) for name in METRICS}
+            values.update(
+                {name: mean_interval([r.mask[name] for r in chosen]) for name in MASK_METRICS}
+            )
+            values["Gaussians per articulated agent"] = mean_interval(
+                [r.per_articulated_agent for r in chosen]
+            )
+            out[budget][variant] = values
+    return out
+
+
+COMPARISONS = (
+    ("decoupled", "rigid"),
+    ("decoupled+prior", "rigid"),
+    ("decoupled+prior", "decoupled"),
+    ("rigid", "static"),
+)
+"""Paired differences the report gives (first - second, same seed and budget)."""
+
+
+def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, dict]:
+    """The Markdown report and its JSON payload."""
+    summary = summarise(runs)
+    lines = [
+        "# dego study: when does decoupling pay off?",
+        "",
+        f"Seeds {list(config.seeds)}, budgets {list(config.budgets)} Gaussians, "
+        f"{config.frames} frames, {config.iterations} iterations per fit, mask prior weight "
+        f"{config.mask_prior}. Percent, mean [95% t-interval over seeds].",
+    ]
+    payload: dict = {
+        "settings": dataclasses.asdict(config),
+        "runs": [dataclasses.asdict(r) for r in runs],
+        "summary": {},
+        "paired": {},
+    }
+    for budget, variants in summary.items():
+        lines += ["", f"## {budget} Gaussians", ""]
+        lines += _interval_table(variants, METRICS)
+        lines += ["", "Rigidity mask (1 = nonrigid) on the Gaussians of each kind of agent:", ""]
+        masked = {v: s for v, s in variants.items() if v.startswith("decoupled")}
+        if masked:
+            lines += _interval_table(
+                masked, (*MASK_METRICS, "Gaussians per articulated agent"), percent=False
+            )
+        payload["summary"][budget] = {
+            v: {m: dataclasses.asdict(i) for m, i in s.items()} for v, s in variants.items()
+        }
+    lines += ["", "## Paired differences on articulated agents at t != 0", ""]
+    lines += [
+        "| difference | budget | mean [95% CI] | n | sign resolved |",
+        "|---|---:|---|---:|---|",
+    ]
+    present = {r.variant for r in runs}
+    for first, second in COMPARISONS:
+        if first not in present or second not in present:
+            continue
+        for budget, interval in paired_differences(runs, "articulated t!=0", first, second).items():
+            resolved = "yes" if interval.excludes_zero() else "no"
+            lines.append(
+                f"| {first} - {second} | {budget} | {interval} | {interval.n} | {resolved} |"
+            )
+            payload["paired"][f"{first} - {second} @ {budget}"] = dataclasses.asdict(interval)
+    lines += ["", "## Reading", "", *_reading(runs, summary)]
+    return "\n".join(lines) + "\n", payload
+
+
+def _interval_table(
+    variants: dict[str, dict[str, Interval]], metrics: Sequence[str], percent: bool = True
+) -> list[str]:
+    head = "| variant | " + " | ".join(metrics) + " |"
+    rows = [head, "|---|" + "---|" * len(metrics)]
+    for variant, values in variants.items():
+        cells = [str(values[m]) for m in metrics]
+        rows.append(f"| {variant} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def _reading(runs: Sequence[StudyRun], summary: dict) -> list[str]:
+    """Plain sentences that follow from the numbers (no judgement beyond them)."""
+    out = []
+    present = {r.variant for r in runs}
+    if {"decoupled", "rigid"} <= present:
+        for budget, interval in paired_differences(
+            runs, "articulated t!=0", "decoupled", "rigid"
+        ).items():
+            if interval.n < 2:
+                verdict = "one seed only: no interval"
+            elif interval.excludes_zero():
+                better = "better" if interval.mean > 0 else "worse"
+                verdict = f"the interval excludes 0: decoupled is {better} than rigid here"
+            else:
+                verdict = "the interval includes 0: the sign is not resolved at this budget"
+            out.append(
+                f"- {budget} Gaussians: decoupled - rigid on articulated agents at t != 0 is "
+                f"{interval} points; {verdict}."
+            )
+    for variant in ("decoupled", "decoupled+prior"):
+        if variant not in present:
+            continue
+        for budget, variants in summary.items():
+            values = variants[variant]
+            out.append(
+                f"- {variant}, {budget} Gaussians: mean mask {values['mask articulated']} on "
+                f"articulated agents vs {values['mask vehicles']} on vehicles, ROC-AUC "
+                f"{values['mask AUC']} (0.5: no separation)."
+            )
+    return out
+
+
+def study_picture(runs: Sequence[StudyRun], path):
+    """Articulated-agent IoU at t != 0 per variant and budget, and the paired difference
+    decoupled - rigid, with 95% intervals (needs matplotlib)."""
+    from dego.viz import _new_figure, save_figure
+
+    summary = summarise(runs)
+    figure = _new_figure((9.0, 3.4))
+    left, right = figure.subplots(1, 2)
+    budgets = list(summary)
+    variants = [v for v in STUDY_VARIANTS if any(r.variant == v for r in runs)]
+    width = 0.8 / max(len(variants), 1)
+    for k, variant in enumerate(variants):
+        intervals = [summary[b][variant]["articulated t!=0"] for b in budgets]
+        xs = [i + (k - (len(variants) - 1) / 2) * width for i in range(len(budgets))]
+        means = [iv.mean for iv in intervals]
+        errors = [
+            [iv.mean - iv.low if iv.n > 1 else 0 for iv in intervals],
+            [iv.high - iv.mean if iv.n > 1 else 0 for iv in intervals],
+        ]
+        left.bar(xs, means, width, yerr=errors, capsize=3, label=variant)
+    left.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])
+    left.set_ylabel("articulated IoU, t != 0 (%)")
+    left.legend(fontsize=7)
+    if {"decoupled", "rigid"} <= set(variants):
+        paired = paired_differences(runs, "articulated t!=0", "decoupled", "rigid")
+        for i, budget in enumerate(budgets):
+            iv = paired[budget]
+            right.errorbar(
+                [i],
+                [iv.mean],
+                yerr=[
+                    [iv.mean - iv.low if iv.n > 1 else 0],
+                    [iv.high - iv.mean if iv.n > 1 else 0],
+                ],
+                fmt="o",
+                capsize=4,
+            )
+        right.axhline(0, color="grey", linewidth=0.8)
+        right.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])
+        right.set_xlim(-0.5, len(budgets) - 0.5)
+        right.set_ylabel("decoupled - rigid (points)")
+    right.set_title("paired by seed, 95% CI", fontsize=9)
+    return save_figure(figure, path, dpi=90)
+
+
+def write_study(
+    runs: Sequence[StudyRun], config: StudyConfig, out: Path, *, pictures: bool = True
+) -> list[Path]:
+    """Write ``study.md``, ``study.json`` and (with matplotlib) ``study.png`` to ``out``."""
+    import json
+
+    out.mkdir(parents=True, exist_ok=True)
+    text, payload = study_report(runs, config)
+    paths = [out / "study.md", out / "study.json"]
+    paths[0].write_text(text)
+    paths[1].write_text(json.dumps(_json_safe(payload), indent=1) + "\n")
+    if pictures:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            return paths
+        paths.append(study_picture(runs, out / "study.png"))
+    return paths
+
+
+def _json_safe(value: object) -> object:
+    """NaN -> None, recursively (JSON has no NaN)."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value

@@ -1,0 +1,181 @@
+"""`dego study`: statistics (ROC-AUC, t-intervals, pairing), configuration and the quick run."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dego.cli import main
+from dego.study import (
+    METRICS,
+    QUICK_STUDY,
+    STUDY_VARIANTS,
+    StudyConfig,
+    StudyRun,
+    mean_interval,
+    paired_differences,
+    roc_auc,
+)
+
+# -- statistics --------------------------------------------------------------------------
+
+
+def test_roc_auc_analytic_cases() -> None:
+    assert roc_auc(torch.tensor([0.9, 0.8]), torch.tensor([0.1, 0.2, 0.3])) == 1.0
+    assert roc_auc(torch.tensor([0.1]), torch.tensor([0.5, 0.6])) == 0.0
+    assert roc_auc(torch.full((3,), 0.5), torch.full((4,), 0.5)) == 0.5
+    assert roc_auc(torch.tensor([1.0, 0.0]), torch.tensor([0.5])) == 0.5
+    assert math.isnan(roc_auc(torch.zeros(0), torch.ones(2)))
+    assert math.isnan(roc_auc(torch.ones(2), torch.zeros(0)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.integers(0, 5), min_size=1, max_size=30),
+    st.lists(st.integers(0, 5), min_size=1, max_size=30),
+)
+def test_roc_auc_matches_brute_force_and_is_antisymmetric(a: list[int], b: list[int]) -> None:
+    positive, negative = torch.tensor(a, dtype=torch.float32), torch.tensor(b, dtype=torch.float32)
+    brute = sum((x > y) + 0.5 * (x == y) for x in a for y in b) / (len(a) * len(b))
+    assert roc_auc(positive, negative) == pytest.approx(brute)
+    assert roc_auc(positive, negative) + roc_auc(negative, positive) == pytest.approx(1.0)
+
+
+def test_mean_interval_known_values() -> None:
+    interval = mean_interval([1.0, 2.0, 3.0])
+    half = 4.303 / math.sqrt(3)  # t(0.975, 2 dof) * sd 1 / sqrt(3)
+    assert (interval.mean, interval.n) == (2.0, 3)
+    assert interval.low == pytest.approx(2 - half) and interval.high == pytest.approx(2 + half)
+    assert not interval.excludes_zero()
+    assert mean_interval([5.0, 5.1, 4.9, 5.0]).excludes_zero()
+    assert mean_interval([-5.0, -5.1, -4.9]).excludes_zero()
+    single = mean_interval([1.0, math.nan])  # NaNs are dropped
+    assert single.n == 1 and single.mean == 1.0 and not single.excludes_zero()
+    assert str(single) == "1.00"
+    assert math.isnan(mean_interval([]).mean) and str(mean_interval([])) == "nan"
+    assert str(interval) == f"2.00 [{2 - half:.2f}, {2 + half:.2f}]"
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-100, 100), min_size=2, max_size=40), st.floats(-50, 50))
+def test_mean_interval_contains_the_mean_and_shifts_with_the_data(
+    values: list[float], shift: float
+) -> None:
+    interval = mean_interval(values)
+    assert interval.low <= interval.mean <= interval.high
+    shifted = mean_interval([v + shift for v in values])
+    assert shifted.mean == pytest.approx(interval.mean + shift, abs=1e-6)
+    assert shifted.high - shifted.low == pytest.approx(interval.high - interval.low, abs=1e-6)
+
+
+def run(seed: int, budget: int, variant: str, articulated: float) -> StudyRun:
+    scores = dict.fromkeys(METRICS, 0.0) | {"articulated t!=0": articulated}
+    return StudyRun(seed, budget, variant, scores, {}, 0.0, 1.0)
+
+
+def test_paired_differences_pair_by_seed_and_budget() -> None:
+    runs = [
+        run(0, 10, "rigid", 10.0),
+        run(0, 10, "decoupled", 13.0),
+        run(1, 10, "rigid", 50.0),
+        run(1, 10, "decoupled", 52.0),
+        run(0, 20, "rigid", 1.0),
+        run(0, 20, "decoupled", 0.0),
+        run(2, 20, "decoupled", 99.0),  # no rigid partner: left out
+    ]
+    paired = paired_differences(runs, "articulated t!=0", "decoupled", "rigid")
+    assert paired[10].mean == pytest.approx(2.5) and paired[10].n == 2
+    assert paired[20].mean == pytest.approx(-1.0) and paired[20].n == 1
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("seeds", ()),
+        ("seeds", (-1,)),
+        ("budgets", (0,)),
+        ("frames", 1),
+        ("iterations", -1),
+        ("variants", ("flow",)),
+        ("mask_prior", -0.1),
+        ("mask_prior", float("nan")),
+    ],
+)
+def test_study_config_rejects_bad_values(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        StudyConfig(**{field: value})  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--seeds", "a-b"], "--seeds"),
+        (["--budgets", "0"], "--budgets"),
+        (["--frames", "1"], "--frames"),
+        (["--mask-prior", "-1"], "--mask-prior"),
+    ],
+)
+def test_bad_study_arguments_exit_with_a_message(
+    arguments: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["study", *arguments])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+# -- the quick study, end to end -------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def quick_study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    out = tmp_path_factory.mktemp("study")
+    result = subprocess.run(
+        [sys.executable, "-m", "dego", "study", "--quick", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr
+    return out, result.stdout
+
+
+def test_quick_study_writes_the_report(quick_study: tuple[Path, str]) -> None:
+    pytest.importorskip("matplotlib")
+    out, stdout = quick_study
+    assert {p.name for p in out.iterdir()} == {"study.md", "study.json", "study.png"}
+    text = (out / "study.md").read_text()
+    for heading in ("## 300 Gaussians", "## Paired differences", "## Reading"):
+        assert heading in text
+    assert "| decoupled - rigid | 300 |" in text
+    assert "decoupled - rigid on articulated agents at t != 0" in text
+    assert text in stdout  # the report is also printed
+
+
+def test_quick_study_json_holds_every_run(quick_study: tuple[Path, str]) -> None:
+    out, _ = quick_study
+    payload = json.loads((out / "study.json").read_text())
+    runs = payload["runs"]
+    expected = len(QUICK_STUDY.seeds) * len(QUICK_STUDY.budgets) * len(STUDY_VARIANTS)
+    assert len(runs) == expected
+    assert {r["variant"] for r in runs} == set(STUDY_VARIANTS)
+    for r in runs:
+        assert set(r["scores"]) == set(METRICS)
+        finite = [v for v in r["scores"].values() if v is not None]
+        assert all(0 <= v <= 100 for v in finite)
+        assert r["scores"]["mIoU t=0"] is not None and r["scores"]["mIoU t=0"] > 0
+        if r["variant"] in ("static", "rigid"):
+            assert r["mask"]["mask static"] == 0.0  # no learned mask: m = 0
+        else:
+            auc = r["mask"]["mask AUC"]
+            assert auc is None or 0 <= auc <= 1
+    assert set(payload["summary"]) == {str(b) for b in QUICK_STUDY.budgets}
+    assert "decoupled - rigid @ 300" in payload["paired"]
