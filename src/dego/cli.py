@@ -39,13 +39,18 @@ from dego.demo import (
     rigidity_mask,
     score_clip,
 )
-from dego.study import QUICK_STUDY, StudyConfig, run_study, study_report, write_study
+from dego.study import QUICK_STUDY, StudyConfig, run_study, write_study
 
 PROGRAM_DESCRIPTION = "Deformable Gaussian occupancy (DeGO) on synthetic clips: demo and study."
 DEMO_DESCRIPTION = (
     "Fit static, rigid and decoupled Gaussians to a synthetic clip from its pseudo labels, "
     "score them at every frame against the ground truth, print one table and write "
     "results.md, results.json and pictures."
+)
+STUDY_DESCRIPTION = (
+    "When does decoupling pay off? Fits the static, rigid and decoupled variants (and "
+    "decoupled with a mask prior) over seeds and Gaussian budgets, scores them at every "
+    "frame and reports means with 95% confidence intervals and paired differences."
 )
 
 BUDGETS = {
@@ -216,8 +221,8 @@ def study_main(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
         print(f"[{len(done)}/{runs} {time.perf_counter() - start:.0f} s] {line}", flush=True)
 
     results = run_study(config, progress=progress)
-    paths = write_study(results, config, args.out, pictures=not args.no_pictures)
-    print(study_report(results, config)[0])
+    report, paths = write_study(results, config, args.out, pictures=not args.no_pictures)
+    print(report)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     print(f"total {time.perf_counter() - start:.1f} s")
     return 0
@@ -243,12 +248,6 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--device: {args.device!r} is not usable here ({error})")
     return run_demo(args.seed, budget, device, args.out, pictures=not args.no_pictures)
 
-
-STUDY_DESCRIPTION = (
-    "When does decoupling pay off? Fits the static, rigid and decoupled variants (and "
-    "decoupled with a mask prior) over seeds and Gaussian budgets, scores them at every "
-    "frame and reports means with 95% confidence intervals and paired differences."
-)
 
 LIFTED_ROW = "lifted labels (no learning)"
 """The table's ceiling row: each frame's own pseudo labels lifted to 3D."""

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 from dego._checks import check_int, check_positive
 from dego._typing import typechecked
 from dego.encoding import positional_encoding
-from dego.gaussians import GaussianSet, _normalize
+from dego.gaussians import GaussianSet, _normalize, quaternion_multiply
 from dego.grid import VoxelGrid
 
 Preset = Literal["paper", "official"]
@@ -124,21 +124,6 @@ def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
         if i < layers - 1:
             modules.append(nn.ReLU())
     return nn.Sequential(*modules)
-
-
-def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product ``a (x) b`` of wxyz quaternions ``(..., 4)`` (broadcasting)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
 
 
 def shift_opacity_logit(opacity: Tensor, shift: Tensor) -> Tensor:

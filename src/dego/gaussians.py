@@ -91,6 +91,21 @@ def build_precisions(
     return _gram_of_scaled_rotation(quats, scales.reciprocal())
 
 
+def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product ``a (x) b`` of wxyz quaternions ``(..., 4)`` (broadcasting)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
 @typechecked
 def rotation_matrices_to_quaternions(
     rotations: Float[Tensor, "*batch 3 3"],
@@ -143,15 +158,7 @@ def rotation_matrices_to_quaternions(
         ],
         -2,
     )  # (*, 4, 4): row k is 4 q_k q
-    best = torch.stack(
-        [
-            1 + trace,
-            1 + 2 * r[..., 0, 0] - trace,
-            1 + 2 * r[..., 1, 1] - trace,
-            1 + 2 * r[..., 2, 2] - trace,
-        ],
-        -1,
-    ).argmax(-1)
+    best = candidates.diagonal(dim1=-2, dim2=-1).argmax(-1)  # the largest 4 q_k^2
     picked = torch.take_along_dim(candidates, best[..., None, None], dim=-2).squeeze(-2)
     quats = _normalize(picked)
     return torch.where(quats[..., :1] < 0, -quats, quats)
@@ -327,17 +334,8 @@ class GaussianSet:
             )
         rotation, translation = matrix[..., None, :3, :3], matrix[..., None, :3, 3]
         means = (rotation @ self.means.unsqueeze(-1)).squeeze(-1) + translation
-        turn = rotation_matrices_to_quaternions(matrix[..., :3, :3])[..., None, :]
-        w1, v1 = turn[..., :1], turn[..., 1:]
-        w2, v2 = self.quats[..., :1], self.quats[..., 1:]
-        quats = torch.cat(
-            [
-                w1 * w2 - (v1 * v2).sum(-1, keepdim=True),
-                w1 * v2 + w2 * v1 + torch.linalg.cross(v1.expand_as(v2), v2),
-            ],
-            -1,
-        )
-        return dataclasses.replace(self, means=means, quats=quats)
+        turn = rotation_matrices_to_quaternions(r)[..., None, :]
+        return dataclasses.replace(self, means=means, quats=quaternion_multiply(turn, self.quats))
 
     def detach(self) -> GaussianSet:
         """A copy whose tensors are detached from the autograd graph."""

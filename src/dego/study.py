@@ -117,12 +117,9 @@ def agent_of_gaussians(result: FitResult, clip: DemoClip) -> Tensor:
     ids = clip.instances[clip.reference].float()
     grown = F.max_pool3d(ids[None, None], 3, stride=1, padding=1)[0, 0].long()
     ids = torch.where(clip.instances[clip.reference] > 0, clip.instances[clip.reference], grown)
-    means = result.model.means.detach()
-    lower = torch.tensor(clip.grid.lower, dtype=means.dtype, device=means.device)
-    size = torch.tensor(clip.grid.voxel_size, dtype=means.dtype, device=means.device)
-    index = torch.floor((means - lower) / size).long()
-    shape = torch.tensor(clip.grid.shape, device=means.device)
-    inside = ((index >= 0) & (index < shape)).all(-1)
+    index = clip.grid.world_to_index(result.model.means.detach())
+    inside = clip.grid.contains_index(index)
+    shape = torch.tensor(clip.grid.shape, device=index.device)
     index = index.clamp(torch.zeros_like(shape), shape - 1)
     found = ids[index[:, 0], index[:, 1], index[:, 2]]
     return torch.where(inside, found, torch.zeros_like(found))
@@ -296,9 +293,7 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
         lines += ["", "Rigidity mask (1 = nonrigid) on the Gaussians of each kind of agent:", ""]
         masked = {v: s for v, s in variants.items() if v.startswith("decoupled")}
         if masked:
-            lines += _interval_table(
-                masked, (*MASK_METRICS, "Gaussians per articulated agent"), percent=False
-            )
+            lines += _interval_table(masked, (*MASK_METRICS, "Gaussians per articulated agent"))
         payload["summary"][budget] = {
             v: {m: dataclasses.asdict(i) for m, i in s.items()} for v, s in variants.items()
         }
@@ -321,9 +316,7 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
     return "\n".join(lines) + "\n", payload
 
 
-def _interval_table(
-    variants: dict[str, dict[str, Interval]], metrics: Sequence[str], percent: bool = True
-) -> list[str]:
+def _interval_table(variants: dict[str, dict[str, Interval]], metrics: Sequence[str]) -> list[str]:
     head = "| variant | " + " | ".join(metrics) + " |"
     rows = [head, "|---|" + "---|" * len(metrics)]
     for variant, values in variants.items():
@@ -364,7 +357,7 @@ def _reading(runs: Sequence[StudyRun], summary: dict) -> list[str]:
     return out
 
 
-def study_picture(runs: Sequence[StudyRun], path):
+def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
     """Articulated-agent IoU at t != 0 per variant and budget, and the paired difference
     decoupled - rigid, with 95% intervals (needs matplotlib)."""
     from dego.viz import _new_figure, save_figure
@@ -411,8 +404,9 @@ def study_picture(runs: Sequence[StudyRun], path):
 
 def write_study(
     runs: Sequence[StudyRun], config: StudyConfig, out: Path, *, pictures: bool = True
-) -> list[Path]:
-    """Write ``study.md``, ``study.json`` and (with matplotlib) ``study.png`` to ``out``."""
+) -> tuple[str, list[Path]]:
+    """Write ``study.md``, ``study.json`` and (with matplotlib) ``study.png`` to ``out``;
+    return the Markdown report and the paths."""
     import json
 
     out.mkdir(parents=True, exist_ok=True)
@@ -424,9 +418,9 @@ def write_study(
         try:
             import matplotlib  # noqa: F401
         except ImportError:
-            return paths
+            return text, paths
         paths.append(study_picture(runs, out / "study.png"))
-    return paths
+    return text, paths
 
 
 def _json_safe(value: object) -> object:

@@ -2,8 +2,9 @@
 
 :class:`DemoClip` stacks a :class:`~dego.data.SyntheticScene`'s frames;
 :class:`GaussianSceneModel` holds learnable canonical Gaussians; :func:`fit_scene` fits them
-and a :class:`~dego.DecoupledDeformation` to the pseudo labels; :func:`predict_labels` and
-:func:`score_labels` voxelise and score the result.
+and a :class:`~dego.DecoupledDeformation` to the pseudo labels; :func:`predict_clip` and
+:func:`score_clip` voxelise and score the result at every frame (:func:`predict_labels`
+and :func:`score_labels` at the reference frame).
 """
 
 from dego.demo.clip import DEMO_FRAME_DT, DemoClip, backproject

@@ -15,18 +15,18 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Int
 from torch import Tensor
 
-from dego.classes import FREE_LABEL
+from dego.classes import FREE_LABEL, HUMAN_CENTRIC_CLASSES
 from dego.deformation import DecoupledDeformation
 from dego.demo.clip import DemoClip, backproject
 from dego.demo.fit import gaussians_at
-from dego.demo.model import GaussianSceneModel
+from dego.demo.model import VEHICLE_CLASSES, GaussianSceneModel
 from dego.demo.score import OCCUPANCY_THRESHOLD, VariantScore, predict_labels, score_labels
 from dego.gaussians import GaussianSet
 from dego.metrics import OccupancyMetrics, OccupancyReport
 
 DYNAMIC_GROUPS: dict[str, tuple[int, ...]] = {
-    "vehicles": (3, 4, 5, 9, 10),
-    "articulated": (2, 6, 7),
+    "vehicles": VEHICLE_CLASSES,
+    "articulated": HUMAN_CENTRIC_CLASSES,
 }
 """Moving agents scored on their own: rigid movers (bus, car, construction vehicle,
 trailer, truck) and articulated agents (bicycle, motorcycle, pedestrian: riders and

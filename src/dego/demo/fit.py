@@ -16,7 +16,12 @@ from dego._checks import check_int, check_positive
 from dego.classes import CLASS_GROUPS
 from dego.deformation import DecoupledDeformation, deformation_loss
 from dego.demo.clip import DemoClip
-from dego.demo.model import ALLOCATIONS, MOVABLE_CLASSES, Allocation, GaussianSceneModel
+from dego.demo.model import (
+    MOVABLE_CLASSES,
+    Allocation,
+    GaussianSceneModel,
+    check_initialisation,
+)
 from dego.gaussians import GaussianSet
 from dego.splatting import SplatOutput, splat
 
@@ -98,16 +103,9 @@ class FitConfig:
             check_positive(f"lr[{name!r}]", value)
         if self.cameras_per_step is not None:
             check_int("cameras_per_step", self.cameras_per_step, 1)
-        if self.allocation not in ALLOCATIONS:
-            raise ValueError(f"allocation: expected one of {ALLOCATIONS}, got {self.allocation!r}")
-        if not 0 <= self.class_balance <= 1:
-            raise ValueError(
-                f"class_balance: expected a number in [0, 1], got {self.class_balance!r}"
-            )
-        if not 0 <= self.semantic_prior < 1:
-            raise ValueError(
-                f"semantic_prior: expected a number in [0, 1), got {self.semantic_prior!r}"
-            )
+        check_initialisation(
+            self.allocation, self.class_balance, self.semantic_prior, "class_balance"
+        )
         if not 0 <= self.warmup <= 1:
             raise ValueError(f"warmup: expected a fraction in [0, 1], got {self.warmup!r}")
         for name in ("depth_weight", "deformation_weight", "mask_sparsity"):
@@ -121,7 +119,7 @@ class FitResult:
     """What :func:`fit_scene` returns.
 
     Attributes:
-        variant: ``"rigid"`` or ``"decoupled"``.
+        variant: ``"static"``, ``"rigid"`` or ``"decoupled"``.
         model: the fitted canonical Gaussians. deformation: the fitted network
             (``None`` for ``static``).
         history: per-iteration values of each term in :data:`LOSS_TERMS`.
@@ -141,7 +139,7 @@ def rigidity_mask(result: FitResult) -> Float[Tensor, " N"]:
     0 everywhere for ``static``)."""
     model = result.model
     if result.deformation is None:
-        return model.means.new_zeros(model.num_gaussians).detach()
+        return model.means.new_zeros(model.num_gaussians)
     times = model.means.new_zeros(1)
     return result.deformation(model.gaussians(), model.latent[None], times).rigid_mask[0]
 

@@ -9,15 +9,17 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from dego._checks import check_int
-from dego.classes import FREE_LABEL
+from dego.classes import FREE_LABEL, HUMAN_CENTRIC_CLASSES
 from dego.demo.clip import DemoClip, backproject
 from dego.gaussians import GaussianSet
 
 NUM_OCCUPIED = FREE_LABEL  # labels 0..16 are occupied classes, 17 is free space
 _MIN_SCALE, _MAX_SCALE = 0.05, 1.0  # metres: bounds of the initial nearest-neighbour scales
-MOVABLE_CLASSES = (2, 3, 4, 5, 6, 7, 9, 10)
-"""Classes that may move (bicycle, bus, car, construction vehicle, motorcycle, pedestrian,
-trailer, truck): where they are depends on the time of the frame."""
+VEHICLE_CLASSES = (3, 4, 5, 9, 10)
+"""Bus, car, construction vehicle, trailer, truck: rigid agents that may move."""
+MOVABLE_CLASSES = tuple(sorted(VEHICLE_CLASSES + HUMAN_CENTRIC_CLASSES))
+"""Classes that may move (the vehicles and the human-centric bicycle, motorcycle,
+pedestrian): where they are depends on the time of the frame."""
 Allocation = Literal["area", "class_balanced"]
 ALLOCATIONS: tuple[Allocation, ...] = ("area", "class_balanced")
 
@@ -105,12 +107,7 @@ class GaussianSceneModel(nn.Module):
         labels are learnt from scratch). Both use the pseudo labels only.
         """
         check_int("num_gaussians", num_gaussians, 1)
-        if allocation not in ALLOCATIONS:
-            raise ValueError(f"allocation: expected one of {ALLOCATIONS}, got {allocation!r}")
-        if not (isinstance(balance, int | float) and 0 <= balance <= 1):
-            raise ValueError(f"balance: expected a number in [0, 1], got {balance!r}")
-        if not 0 <= semantic_prior < 1:
-            raise ValueError(f"semantic_prior: expected a number in [0, 1), got {semantic_prior!r}")
+        check_initialisation(allocation, balance, semantic_prior)
         labels = clip.semantics
         surface = clip.supervised & (clip.depth > 0) & (labels < NUM_OCCUPIED)
         if allocation == "class_balanced":
@@ -162,6 +159,19 @@ class GaussianSceneModel(nn.Module):
             opacities=torch.sigmoid(self.opacity_logits)[None],
             features=torch.softmax(self.semantic_logits, -1)[None],
         )
+
+
+def check_initialisation(
+    allocation: str, balance: float, semantic_prior: float, balance_name: str = "balance"
+) -> None:
+    """The argument checks of :meth:`GaussianSceneModel.from_clip` (``balance_name``: how
+    the caller names ``balance``), shared with :class:`~dego.demo.FitConfig`."""
+    if allocation not in ALLOCATIONS:
+        raise ValueError(f"allocation: expected one of {ALLOCATIONS}, got {allocation!r}")
+    if not (isinstance(balance, int | float) and 0 <= balance <= 1):
+        raise ValueError(f"{balance_name}: expected a number in [0, 1], got {balance!r}")
+    if not 0 <= semantic_prior < 1:
+        raise ValueError(f"semantic_prior: expected a number in [0, 1), got {semantic_prior!r}")
 
 
 def nearest_neighbour_distance(
