@@ -3,7 +3,8 @@
 W1 (paper scale): 6 surround cameras at 256 x 704, 10,000 Gaussians in the Occ3D
     volume (scales 0.05-1 m), C = 48 features (16 semantic + 32 distillation), expected
     depth; ours on the chosen device, and gsplat's ``rasterization`` on the same inputs
-    when CUDA and gsplat are available.
+    when CUDA and gsplat are available. Also the overhead of ``dego.compat.gsplat``'s
+    ``rasterization`` over ``dego.splat`` with the same rules.
 W2 (mid): 2 cameras at 128 x 352, 2,000 Gaussians: ours (tile-based) vs a dense
     evaluation of every Gaussian at every pixel with the same rules (chunked over pixel
     rows so that it fits in memory).
@@ -21,6 +22,7 @@ from pathlib import Path
 import torch
 
 from dego import GaussianSet, splat
+from dego.compat import gsplat as compat
 from dego.splatting import project_gaussians
 
 from harness import benchmark_parser, peak_memory_mib
@@ -129,6 +131,68 @@ def report(
     return seconds, peak
 
 
+def gsplat_call(
+    rasterization: Callable[..., tuple[torch.Tensor, torch.Tensor, dict]],
+    scene: GaussianSet,
+    w2c: torch.Tensor,
+    k: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """W1 through a gsplat-style ``rasterization`` (gsplat's own or dego's adapter):
+    unbatched tensors, ``RGB+ED``; returns ``(colours with depth, alphas)``."""
+    colors, alphas, _ = rasterization(
+        scene.means[0],
+        scene.quats[0],
+        scene.scales[0],
+        scene.opacities[0],
+        scene.features[0],
+        w2c[0],
+        k[0],
+        704,
+        256,
+        render_mode="RGB+ED",
+    )
+    return colors, alphas
+
+
+def compat_overhead(
+    gs: GaussianSet, w2c: torch.Tensor, k: torch.Tensor, repeats: int, device: torch.device
+) -> None:
+    """``dego.compat.gsplat.rasterization`` (gsplat's call and layout, packed meta) vs
+    ``dego.splat`` with the same rules, forward + backward, timed alternately."""
+
+    def direct(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
+        out = splat(scene, w2c, k, (256, 704), radius_rule="gsplat>=1.5")
+        return out.features, out.depth, out.alpha
+
+    def wrapped(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
+        return gsplat_call(compat.rasterization, scene, w2c, k)
+
+    runs = {"direct": forward_backward(direct, gs), "wrapped": forward_backward(wrapped, gs)}
+    times: dict[str, list[float]] = {name: [] for name in runs}
+    for fn in runs.values():
+        fn()  # warm-up
+    for _ in range(max(repeats, 5)):  # alternate, so drifts of a shared machine hit both
+        for name, fn in runs.items():
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            start = time.perf_counter()
+            fn()
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            times[name].append(time.perf_counter() - start)
+    direct_s, wrapped_s = (statistics.median(times[name]) for name in runs)
+    peaks = {name: peak_memory_mib(fn, device) for name, fn in runs.items()}
+    print(
+        f"  {'dego splat, radius_rule gsplat>=1.5':<44} {direct_s:8.3f} s   "
+        f"peak {peaks['direct']:8.1f} MiB"
+    )
+    print(
+        f"  {'compat.gsplat.rasterization (packed)':<44} {wrapped_s:8.3f} s   "
+        f"peak {peaks['wrapped']:8.1f} MiB"
+    )
+    print(f"  wrapper overhead: {100 * (wrapped_s / direct_s - 1):+.1f}% of the splat time")
+
+
 def main() -> None:
     parser = benchmark_parser(__doc__, repeats=3)
     parser.add_argument("--png", type=Path, default=None, help="save W1 depth and semantics here")
@@ -152,6 +216,7 @@ def main() -> None:
         )
         with torch.no_grad():
             report("dego splat, forward only", lambda: ours(gs), args.repeats, device)
+        compat_overhead(gs, w2c, k, args.repeats, device)
         if device.type == "cuda":
             try:
                 from gsplat import rasterization
@@ -160,26 +225,18 @@ def main() -> None:
             else:
 
                 def theirs(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
-                    img, alpha, _ = rasterization(
-                        scene.means[0],
-                        scene.quats[0],
-                        scene.scales[0],
-                        scene.opacities[0],
-                        scene.features[0],
-                        w2c[0],
-                        k[0],
-                        704,
-                        256,
-                        render_mode="RGB+ED",
-                    )
-                    return img, alpha
+                    return gsplat_call(rasterization, scene, w2c, k)
 
                 gsplat_time, _ = report(
                     "gsplat rasterization", forward_backward(theirs, gs), args.repeats, device
                 )
                 print(f"  ours / gsplat time: {ours_time / gsplat_time:.2f}x")
+                from dego.splatting import gsplat_backend
+
+                rule = gsplat_backend.rule_of(gsplat_backend.installed_version() or (1, 5))
                 with torch.no_grad():
-                    mine, (img, alpha) = ours(gs), theirs(gs)
+                    same = splat(gs, w2c, k, (256, 704), radius_rule=rule)  # gsplat's rule
+                    mine, (img, alpha) = (same.features, same.depth, same.alpha), theirs(gs)
                     feature_error = (mine[0][0] - img.permute(0, 3, 1, 2)[:, :48]).abs().max()
                     alpha_error = (mine[2][0] - alpha[..., 0]).abs().max()
                     print(

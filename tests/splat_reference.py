@@ -36,7 +36,12 @@ class Projected:
     mean2d: Tensor  # (2,) pixels
     conic: Tensor  # (3,) = (a, b, c) of the inverse 2D covariance [[a, b], [b, c]]
     depth: Tensor  # () camera z of the mean
-    radius: int  # pixels, > 0
+    radius_xy: tuple[int, int]  # pixels per axis, > 0
+    opacity: Tensor  # () opacity used by the compositing (antialiasing compensation applied)
+
+    @property
+    def radius(self) -> int:
+        return max(self.radius_xy)
 
 
 def project_gaussian(
@@ -50,7 +55,11 @@ def project_gaussian(
     near: float,
     far: float,
     eps2d: float,
-    radius_sigma: float,
+    radius_sigma: float | None,
+    opacity: Tensor,
+    radius_rule: str = "gsplat<=1.4",
+    radius_clip: float = 0.0,
+    rasterize_mode: str = "classic",
 ) -> Projected | None:
     """Project a single Gaussian; ``None`` when it is culled (radius 0)."""
     rot, trans = world_to_cam[:3, :3], world_to_cam[:3, 3]
@@ -74,31 +83,48 @@ def project_gaussian(
             torch.stack([zero, fy / z, -fy * ty / z**2]),
         ]
     )
-    cov2d = jacobian @ cov_cam @ jacobian.T + eps2d * torch.eye(2, dtype=z.dtype, device=z.device)
+    undilated = jacobian @ cov_cam @ jacobian.T
+    cov2d = undilated + eps2d * torch.eye(2, dtype=z.dtype, device=z.device)
 
     det = cov2d[0, 0] * cov2d[1, 1] - cov2d[0, 1] ** 2
     if float(det.detach()) <= 0:
         return None
     conic = torch.stack([cov2d[1, 1] / det, -cov2d[0, 1] / det, cov2d[0, 0] / det])
     mean2d = torch.stack([fx * x / z + cx, fy * y / z + cy])
+    if rasterize_mode == "antialiased":
+        det_undilated = undilated[0, 0] * undilated[1, 1] - undilated[0, 1] ** 2
+        opacity = opacity * torch.sqrt(torch.clamp(det_undilated / det, min=0.0))
 
-    mid = 0.5 * float((cov2d[0, 0] + cov2d[1, 1]).detach())
-    lambda_max = mid + math.sqrt(max(mid * mid - float(det.detach()), 0.0))
-    radius = math.ceil(radius_sigma * math.sqrt(lambda_max))
-    mx, my = (float(c) for c in mean2d.detach())
-    if mx + radius <= 0 or mx - radius >= width or my + radius <= 0 or my - radius >= height:
+    if radius_rule == "gsplat<=1.4":
+        k = 3.0 if radius_sigma is None else radius_sigma
+        mid = 0.5 * float((cov2d[0, 0] + cov2d[1, 1]).detach())
+        lambda_max = mid + math.sqrt(max(mid * mid - float(det.detach()), 0.01))
+        rx = ry = math.ceil(k * math.sqrt(lambda_max))
+    else:  # gsplat 1.5's CUDA rule: per axis, opacity-aware, o < 1/255 culled
+        o = float(opacity.detach())
+        if o < 1 / 255:
+            return None
+        k = 3.33 if radius_sigma is None else radius_sigma
+        extent = min(k, math.sqrt(2 * math.log(o * 255)))
+        rx = math.ceil(extent * math.sqrt(float(cov2d[0, 0].detach())))
+        ry = math.ceil(extent * math.sqrt(float(cov2d[1, 1].detach())))
+    if rx <= radius_clip and ry <= radius_clip:
         return None
-    return Projected(mean2d=mean2d, conic=conic, depth=z, radius=radius)
+    mx, my = (float(c) for c in mean2d.detach())
+    if mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height:
+        return None
+    return Projected(mean2d=mean2d, conic=conic, depth=z, radius_xy=(rx, ry), opacity=opacity)
 
 
 def tile_mask(p: Projected, height: int, width: int, tile_size: int) -> Tensor:
     """``(H, W)`` bool: pixels whose tile lies in the Gaussian's tile rectangle."""
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     mx, my = (float(c) for c in p.mean2d.detach())
-    x0 = min(max(math.floor((mx - p.radius) / tile_size), 0), tiles_x)
-    x1 = min(max(math.ceil((mx + p.radius) / tile_size), 0), tiles_x)
-    y0 = min(max(math.floor((my - p.radius) / tile_size), 0), tiles_y)
-    y1 = min(max(math.ceil((my + p.radius) / tile_size), 0), tiles_y)
+    rx, ry = p.radius_xy
+    x0 = min(max(math.floor((mx - rx) / tile_size), 0), tiles_x)
+    x1 = min(max(math.ceil((mx + rx) / tile_size), 0), tiles_x)
+    y0 = min(max(math.floor((my - ry) / tile_size), 0), tiles_y)
+    y1 = min(max(math.ceil((my + ry) / tile_size), 0), tiles_y)
     col_tile = torch.arange(width, device=p.mean2d.device) // tile_size
     row_tile = torch.arange(height, device=p.mean2d.device) // tile_size
     cols = (col_tile >= x0) & (col_tile < x1)
@@ -123,10 +149,14 @@ def render_image(
     max_alpha: float,
     alpha_min: float,
     transmittance_min: float,
-    radius_sigma: float,
+    radius_sigma: float | None,
     tile_size: int,
+    **rules: object,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """One camera: ``(features (C,H,W), accumulated depth (H,W), alpha (H,W), radii (N,))``."""
+    """One camera: ``(features (C,H,W), accumulated depth (H,W), alpha (H,W), radii (N,))``.
+
+    ``features`` ``(N, C)``; ``rules``: ``radius_rule``, ``radius_clip``, ``rasterize_mode``.
+    """
     n = means.shape[0]
     dtype, device = means.dtype, means.device
     radii = torch.zeros(n, dtype=torch.int64, device=device)
@@ -143,6 +173,8 @@ def render_image(
             far=far,
             eps2d=eps2d,
             radius_sigma=radius_sigma,
+            opacity=opacities[i],
+            **rules,  # type: ignore[arg-type]
         )
         if p is not None:
             projected[i] = p
@@ -162,7 +194,7 @@ def render_image(
         a, b, c = p.conic
         sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
         # clamp_min keeps exp finite where sigma < 0 (those pixels are skipped anyway).
-        alpha = torch.clamp(opacities[i] * torch.exp(-sigma.clamp_min(0)), max=max_alpha)
+        alpha = torch.clamp(p.opacity * torch.exp(-sigma.clamp_min(0)), max=max_alpha)
         hit = active & tile_mask(p, height, width, tile_size) & (sigma >= 0)
         hit = hit & (alpha >= alpha_min)
         next_transmittance = transmittance * (1 - alpha)
@@ -192,11 +224,16 @@ def reference_splat(
     max_alpha: float = 0.999,
     alpha_min: float = 1 / 255,
     transmittance_min: float = 1e-4,
-    radius_sigma: float = 3.0,
+    radius_sigma: float | None = None,
     tile_size: int = 16,
     depth_mode: str = "expected",
+    **rules: object,
 ) -> ReferenceOutput:
-    """Render ``gaussians`` (batch ``(B,)``) into ``B x V`` images, one at a time."""
+    """Render ``gaussians`` (batch ``(B,)``) into ``B x V`` images, one at a time.
+
+    ``features`` ``(B, N, C)`` or per camera ``(B, V, N, C)``; ``rules``: ``radius_rule``,
+    ``radius_clip``, ``rasterize_mode`` (as ``dego.splat``).
+    """
     height, width = image_size
     num_batch, num_views = world_to_cam.shape[:2]
     n = gaussians.num_gaussians
@@ -206,6 +243,8 @@ def reference_splat(
     if features is None:
         features = torch.zeros(num_batch, n, 0, dtype=dtype, device=device)
     channels = features.shape[-1]
+    if features.ndim == 3:
+        features = features.unsqueeze(1).expand(num_batch, num_views, n, channels)
     if background is None:
         background = torch.zeros(channels, dtype=dtype, device=device)
     if background.ndim == 1:
@@ -219,7 +258,7 @@ def reference_splat(
                 gaussians.means[b],
                 covariances[b],
                 gaussians.opacities[b],
-                features[b],
+                features[b, v],
                 background[b, v],
                 world_to_cam[b, v],
                 intrinsics[b, v],
@@ -233,6 +272,7 @@ def reference_splat(
                 transmittance_min=transmittance_min,
                 radius_sigma=radius_sigma,
                 tile_size=tile_size,
+                **rules,
             )
             if depth_mode == "expected":
                 depth = depth / alpha.clamp_min(1e-10)

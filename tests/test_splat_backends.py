@@ -42,10 +42,23 @@ def test_gsplat_backend_explains_why_it_cannot_run() -> None:
     not torch.cuda.is_available() or importlib.util.find_spec("gsplat") is None,
     reason="needs CUDA and gsplat",
 )
-def test_gsplat_backend_matches_torch_path_on_cuda() -> None:
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"rasterize_mode": "antialiased", "radius_clip": 1.0}, {"depth_mode": "accumulated"}],
+)
+def test_gsplat_backend_matches_torch_path_on_cuda(options: dict) -> None:
+    from dego.splatting import gsplat_backend
+
     gs, w2c, k = scene("cuda")
-    ours = splat(gs, w2c, k, (32, 48))
-    theirs = splat(gs, w2c, k, (32, 48), backend="gsplat")
+    rule = gsplat_backend.rule_of(gsplat_backend.installed_version())
+    ours = splat(gs, w2c, k, (32, 48), radius_rule=rule, **options)
+    theirs = splat(gs, w2c, k, (32, 48), backend="gsplat", **options)
     torch.testing.assert_close(theirs.features, ours.features, rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(theirs.alpha, ours.alpha, rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(theirs.depth, ours.depth, rtol=1e-4, atol=1e-3)
+    assert torch.equal(theirs.radii, ours.radii)
+    assert torch.equal(theirs.projection.radii_xy, ours.projection.radii_xy)
+    per_camera = torch.rand(1, 2, gs.num_gaussians, 3, device="cuda")
+    theirs = splat(gs, w2c, k, (32, 48), backend="gsplat", features=per_camera, **options)
+    ours = splat(gs, w2c, k, (32, 48), radius_rule=rule, features=per_camera, **options)
+    torch.testing.assert_close(theirs.features, ours.features, rtol=1e-4, atol=1e-4)

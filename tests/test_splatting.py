@@ -30,6 +30,9 @@ REFERENCE_KEYS = (
     "radius_sigma",
     "tile_size",
     "depth_mode",
+    "radius_rule",
+    "radius_clip",
+    "rasterize_mode",
 )
 
 # ---------------------------------------------------------------------------------------

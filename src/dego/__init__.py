@@ -5,6 +5,7 @@ so that they run on CPU and GPU, in float32 and float64, with checked shapes.
 """
 
 from dego._version import __version__
+from dego.cameras import apply_image_aug, resize_crop_intrinsics, split_projection
 from dego.classes import (
     CLASS_GROUPS,
     CLASS_NAMES,
@@ -100,6 +101,7 @@ __all__ = [
     "VoxelGrid",
     "VoxelOutput",
     "__version__",
+    "apply_image_aug",
     "build_covariances",
     "build_precisions",
     "cast_rays",
@@ -115,8 +117,10 @@ __all__ = [
     "positional_encoding",
     "protocol_classes",
     "quaternions_to_rotation_matrices",
+    "resize_crop_intrinsics",
     "rotation_matrices_to_quaternions",
     "save_occ3d_labels",
     "splat",
+    "split_projection",
     "voxelize",
 ]

@@ -168,6 +168,24 @@ def rotation_matrices_to_quaternions(
 # GaussianSet
 # ----------------------------------------------------------------------------------------
 
+# Options of GaussianSet.from_tensors / to_tensors (see their docstrings).
+_QUAT_ORDERS = ("wxyz", "xyzw")
+_ROTATIONS = ("R", "R^T")
+_SCALE_SPACES = ("std", "variance", "log")
+_OPACITY_SPACES = ("prob", "logit")
+_OPACITY_SHAPES = ("N", "N1")
+
+
+def _check_option(name: str, value: object, valid: tuple[str, ...]) -> None:
+    if not isinstance(value, str) or value not in valid:
+        raise ValueError(f"{name}: expected one of {', '.join(map(repr, valid))}, got {value!r}")
+
+
+def _conjugate(quats: Tensor) -> Tensor:
+    """``(w, -x, -y, -z)``: the inverse rotation; exact (only signs change)."""
+    return torch.cat([quats[..., :1], -quats[..., 1:]], dim=-1)
+
+
 _TRAILING_DIMS: dict[str, int | None] = {
     "means": 3,
     "quats": 4,
@@ -253,6 +271,137 @@ class GaussianSet:
         for name in cls.FIELDS:
             object.__setattr__(obj, name, fields.get(name))
         return obj
+
+    @classmethod
+    @typechecked
+    def from_tensors(
+        cls,
+        means: Float[Tensor, "*batch N 3"],
+        quats: Float[Tensor, "*batch N 4"],
+        scales: Float[Tensor, "*batch N 3"],
+        opacities: Float[Tensor, "*batch N"] | Float[Tensor, "*batch N 1"],
+        features: Float[Tensor, "*batch N C"] | None = None,
+        *,
+        quat_order: str = "wxyz",
+        rotation: str = "R",
+        scale_space: str = "std",
+        opacity_space: str = "prob",
+    ) -> GaussianSet:
+        """A validated set from tensors in another code base's conventions (gsplat, 3DGS,
+        GaussianFormer), converted to dego's.
+
+        Args:
+            means: ``(*batch, N, 3)`` centres, or unbatched ``(N, 3)``.
+            quats: ``(*batch, N, 4)`` quaternions in ``quat_order``.
+            scales: ``(*batch, N, 3)`` scales in ``scale_space``.
+            opacities: ``(*batch, N)`` or ``(*batch, N, 1)`` opacities in ``opacity_space``.
+            features: optional ``(*batch, N, C)`` features, kept as they are.
+            quat_order: ``"wxyz"`` (gsplat, 3DGS, GaussianFormer, dego) or ``"xyzw"``
+                (scipy, PyTorch3D's ``*_xyzw``, many loaders); reordered to wxyz.
+            rotation: which product the quaternion's matrix ``R`` enters. ``"R"``:
+                ``Sigma = R diag(s^2) R^T`` (gsplat, 3DGS, dego; quaternion kept).
+                ``"R^T"``: ``Sigma = R^T diag(s^2) R``, as GaussianFormer's
+                ``(S R)^T (S R)``; stored as the conjugate ``(w, -x, -y, -z)``.
+            scale_space: ``"std"`` (standard deviations, kept), ``"variance"`` (``sqrt``
+                taken) or ``"log"`` (log standard deviations as 3DGS stores them; ``exp``).
+            opacity_space: ``"prob"`` (in [0, 1], kept) or ``"logit"`` (``sigmoid`` taken).
+
+        Unbatched input (``means.ndim == 2``) gets a batch axis: the result has batch shape
+        ``(1,)``. Tensors that need no conversion are stored without copying. The values
+        are checked with :meth:`check_values`, so e.g. logits passed as probabilities are
+        caught here. Differentiable in every input.
+
+        Raises:
+            ValueError: an unknown option (named), negative variances, or invalid values.
+        """
+        _check_option("quat_order", quat_order, _QUAT_ORDERS)
+        _check_option("rotation", rotation, _ROTATIONS)
+        _check_option("scale_space", scale_space, _SCALE_SPACES)
+        _check_option("opacity_space", opacity_space, _OPACITY_SPACES)
+        if opacities.ndim == means.ndim:  # (*batch, N, 1); the annotation ensured the 1
+            opacities = opacities.squeeze(-1)
+        if quat_order == "xyzw":
+            quats = quats.roll(1, dims=-1)
+        if rotation == "R^T":
+            quats = _conjugate(quats)
+        if scale_space == "variance":
+            negative = scales < 0
+            if bool(negative.any()):
+                raise ValueError(
+                    f"scales: expected non-negative variances (scale_space='variance'), "
+                    f"got {int(negative.sum())} negative values (e.g. "
+                    f"{scales[negative][0].item():.6g})"
+                )
+            scales = scales.sqrt()
+        elif scale_space == "log":
+            scales = scales.exp()
+        if opacity_space == "logit":
+            opacities = torch.sigmoid(opacities)
+        fields = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
+        if features is not None:
+            fields["features"] = features
+        if means.ndim == 2:
+            fields = {name: value.unsqueeze(0) for name, value in fields.items()}
+        return cls(**fields).check_values()
+
+    @typechecked
+    def to_tensors(
+        self,
+        *,
+        quat_order: str = "wxyz",
+        rotation: str = "R",
+        scale_space: str = "std",
+        opacity_space: str = "prob",
+        opacity_shape: str = "N",
+    ) -> tuple[
+        Float[Tensor, "*batch N 3"],
+        Float[Tensor, "*batch N 4"],
+        Float[Tensor, "*batch N 3"],
+        Float[Tensor, "*batch N"] | Float[Tensor, "*batch N 1"],
+        Float[Tensor, "*batch N C"] | None,
+    ]:
+        """``(means, quats, scales, opacities, features)`` in another code base's
+        conventions: the inverse of :meth:`from_tensors` with the same options.
+
+        Options as in :meth:`from_tensors` (``"xyzw"`` reorders, ``"R^T"`` conjugates,
+        ``"variance"`` squares, ``"log"`` takes ``log``, ``"logit"`` applies
+        ``torch.logit``), plus ``opacity_shape``: ``"N"`` for ``(*batch, N)`` or ``"N1"``
+        for ``(*batch, N, 1)`` (gsplat/3DGS parameter layout). Shapes keep the set's batch
+        axes (a set made from unbatched tensors returns ``(1, N, k)``: index ``[0]``).
+
+        ``opacity_space="logit"`` maps opacity 0 to ``-inf`` and 1 to ``+inf`` (e.g. the
+        zero-opacity padding of :meth:`stack`); ``from_tensors`` maps them back exactly,
+        but clamp first (``replace(opacities=o.clamp(eps, 1 - eps))``) when finite
+        logits are needed, e.g. to optimise them. Unconverted fields are returned without
+        copying (they share storage with the set).
+
+        Returns:
+            ``means (*batch, N, 3)``, ``quats (*batch, N, 4)``, ``scales (*batch, N, 3)``,
+            ``opacities (*batch, N)`` or ``(*batch, N, 1)``, ``features (*batch, N, C)``
+            or ``None``.
+
+        Raises:
+            ValueError: an unknown option (named).
+        """
+        _check_option("quat_order", quat_order, _QUAT_ORDERS)
+        _check_option("rotation", rotation, _ROTATIONS)
+        _check_option("scale_space", scale_space, _SCALE_SPACES)
+        _check_option("opacity_space", opacity_space, _OPACITY_SPACES)
+        _check_option("opacity_shape", opacity_shape, _OPACITY_SHAPES)
+        quats, scales, opacities = self.quats, self.scales, self.opacities
+        if rotation == "R^T":
+            quats = _conjugate(quats)
+        if quat_order == "xyzw":
+            quats = quats.roll(-1, dims=-1)
+        if scale_space == "variance":
+            scales = scales.square()
+        elif scale_space == "log":
+            scales = scales.log()
+        if opacity_space == "logit":
+            opacities = torch.logit(opacities)
+        if opacity_shape == "N1":
+            opacities = opacities.unsqueeze(-1)
+        return self.means, quats, scales, opacities, self.features
 
     def _items(self) -> list[tuple[str, Tensor]]:
         """``(name, tensor)`` for every present field, in declaration order."""
@@ -460,24 +609,37 @@ class GaussianSet:
     # -- value checks -----------------------------------------------------------------
     def check_values(self) -> GaussianSet:
         """Raise ``ValueError`` on non-finite values, scales <= 0, opacities outside [0, 1]
-        or zero-norm quaternions; returns ``self`` so it can be chained."""
+        or zero-norm quaternions; returns ``self`` so it can be chained.
+
+        When every opacity lies outside [0, 1] or every scale is negative, the message
+        says they look like logits / log-scales and points to :meth:`from_tensors`.
+        """
         for name, value in self._items():
             bad = ~torch.isfinite(value)
             if bool(bad.any()):
                 raise ValueError(
                     f"{name}: {int(bad.sum())} of {value.numel()} values are not finite"
                 )
+        outside = (self.opacities < 0) | (self.opacities > 1)
+        # (field, violations, rule, suspicious when all of these hold, what it looks like)
         rules = (
-            ("scales", self.scales <= 0, "must be positive standard deviations"),
-            ("opacities", (self.opacities < 0) | (self.opacities > 1), "must lie in [0, 1]"),
-        )
-        for name, bad, what in rules:
+            ("scales", self.scales <= 0, "must be positive standard deviations",
+             self.scales < 0, "every value is negative, which looks like log-scales: "
+             'use GaussianSet.from_tensors(..., scale_space="log")'),
+            ("opacities", outside, "must lie in [0, 1]",
+             outside, "every value lies outside [0, 1], which looks like logits: "
+             'use GaussianSet.from_tensors(..., opacity_space="logit")'),
+        )  # fmt: skip
+        for name, bad, what, suspicious, hint in rules:
             if bool(bad.any()):
                 offending = getattr(self, name)[bad]
-                raise ValueError(
+                message = (
                     f"{name} {what}; {offending.numel()} values violate this "
                     f"(e.g. {offending[0].item():.6g})"
                 )
+                if bool(suspicious.all()):
+                    message += f"; {hint}"
+                raise ValueError(message)
         zero = torch.linalg.vector_norm(self.quats, dim=-1) <= QUATERNION_EPS
         if bool(zero.any()):
             raise ValueError(

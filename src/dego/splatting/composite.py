@@ -11,6 +11,7 @@ peak memory is set by ``max_pairs``, not by the total number of (Gaussian, pixel
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -98,10 +99,12 @@ def _chunk_backward(
     rules: CompositeRules,
     grad_contribution: Tensor,  # (G, S*S, D)
     grad_transmittance: Tensor,  # (G, S, S) of the transmittance after the chunk
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    absgrad: bool = False,
+) -> tuple[Tensor, ...]:
     """Closed-form gradients of :func:`_chunk_forward`, recomputing alpha once.
 
-    Returns the gradients of the incoming transmittance, mean, conic, opacity and colour.
+    Returns the gradients of the incoming transmittance, mean, conic, opacity and colour,
+    and with ``absgrad`` also the per-pixel absolute mean gradients summed over pixels.
     """
     g, k, _ = color.shape
     size = transmittance.shape[-1]
@@ -139,7 +142,14 @@ def _chunk_backward(
     grad_conic = -torch.stack([0.5 * x2, xy, 0.5 * y2], -1)
     total = grad_logit.sum((-1, -2))
     grad_opacity = torch.where(opacity > 1e-30, total / opacity.clamp_min(1e-30), 0.0)
-    return grad_in, grad_mean, grad_conic, grad_opacity, grad_color
+    if not absgrad:
+        return grad_in, grad_mean, grad_conic, grad_opacity, grad_color
+    # rows index dy, columns dx: the per-pixel mean gradient is -grad_logit (a dx + b dy, ...)
+    row_dy, col_dx = dy.unsqueeze(-1), dx.unsqueeze(-2)
+    per_pixel_x = (a[..., None, None] * col_dx + b[..., None, None] * row_dy) * grad_logit
+    per_pixel_y = (c[..., None, None] * row_dy + b[..., None, None] * col_dx) * grad_logit
+    abs_mean = torch.stack([per_pixel_x.abs().sum((-1, -2)), per_pixel_y.abs().sum((-1, -2))], -1)
+    return grad_in, grad_mean, grad_conic, grad_opacity, grad_color, abs_mean
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,6 +200,7 @@ class _CompositeTiles(torch.autograd.Function):
         rules: CompositeRules,
         chunk_size: int,
         max_pairs: int,
+        absgrad_sink: Callable[[Tensor], None] | None,
     ) -> tuple[Tensor, Tensor]:
         num_tiles, dim = lists.num_tiles, colors.shape[-1]
         device, dtype = colors.device, colors.dtype
@@ -224,7 +235,7 @@ class _CompositeTiles(torch.autograd.Function):
             active = active[more]
 
         ctx.save_for_backward(means2d, conics, opacities, colors, origins)
-        ctx.steps, ctx.rules = steps, rules
+        ctx.steps, ctx.rules, ctx.absgrad_sink = steps, rules, absgrad_sink
         return out.view(num_tiles, tile_size, tile_size, dim), transmittance
 
     @staticmethod
@@ -233,6 +244,9 @@ class _CompositeTiles(torch.autograd.Function):
     ) -> tuple[Tensor | None, ...]:
         means2d, conics, opacities, colors, origins = ctx.saved_tensors
         grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, colors)]
+        sink = ctx.absgrad_sink
+        if sink is not None:
+            grads.append(torch.zeros_like(means2d))
         grad_out = grad_out.flatten(1, 2)  # (T, S*S, D)
         grad_t = grad_transmittance.clone()  # gradient of the running transmittance, per tile
         for record in reversed(ctx.steps):
@@ -242,13 +256,16 @@ class _CompositeTiles(torch.autograd.Function):
                 ctx.rules,
                 grad_out[group],
                 grad_t[group],
+                absgrad=sink is not None,
             )
             grad_t.index_copy_(0, group, grad_in)
             per_gaussian[2] = per_gaussian[2] * valid  # padding repeats real ids
             flat_ids = ids.reshape(-1)
             for total, grad in zip(grads, per_gaussian, strict=True):
                 total.index_add_(0, flat_ids, grad.flatten(0, 1))
-        return (*grads, None, None, None, None, None)
+        if sink is not None:
+            sink(grads.pop())
+        return (*grads, None, None, None, None, None, None)
 
 
 def _tile_origins(lists: TileLists, tile_size: int, dtype: torch.dtype) -> Tensor:
@@ -271,10 +288,22 @@ def composite_tiles(
     rules: CompositeRules,
     chunk_size: int,
     max_pairs: int,
+    absgrad_sink: Callable[[Tensor], None] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Composite every tile; returns per-tile colour sums ``(T, S, S, D)`` and final
     transmittance ``(T, S, S)`` for the ``T = lists.num_tiles`` tiles. Differentiable
-    w.r.t. ``means2d``, ``conics``, ``opacities`` and ``colors``."""
+    w.r.t. ``means2d``, ``conics``, ``opacities`` and ``colors``. With ``absgrad_sink``,
+    backward also sums each Gaussian's per-pixel ``|dL/d means2d|`` (AbsGS) and passes
+    the ``(M, 2)`` result to it."""
     return _CompositeTiles.apply(
-        means2d, conics, opacities, colors, lists, tile_size, rules, chunk_size, max_pairs
+        means2d,
+        conics,
+        opacities,
+        colors,
+        lists,
+        tile_size,
+        rules,
+        chunk_size,
+        max_pairs,
+        absgrad_sink,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -11,15 +12,27 @@ from dego.gaussians import _gram_of_scaled_rotation
 
 _MAX_RADIUS = 1 << 24  # pixels; keeps the integer conversion finite for degenerate inputs
 
+RadiusRule = Literal["gsplat<=1.4", "gsplat>=1.5"]
+RasterizeMode = Literal["classic", "antialiased"]
+RADIUS_SIGMA = {"gsplat<=1.4": 3.0, "gsplat>=1.5": 3.33}
+"""Each radius rule's default number of standard deviations."""
+ALPHA_THRESHOLD = 1 / 255
+"""gsplat's compiled alpha threshold, used by the ``gsplat>=1.5`` rule's opacity-aware extent."""
+
 
 @dataclasses.dataclass(frozen=True)
 class Projection:
     """Per (image, Gaussian) screen-space quantities, all shaped ``(B, V, N, ...)``.
 
-    ``means2d`` pixels (x right, y down), ``conics`` the inverse dilated 2D covariance
-    as ``(a, b, c)`` = ``[[a, b], [b, c]]``, ``variances2d`` its diagonal (pixels^2, no
-    gradient), ``depths`` camera z of the mean, ``radii`` integer pixel radius (0 where
-    culled), ``visible`` the complement of culling.
+    ``means2d`` pixels (x right, y down); when it comes from :func:`dego.splat` it is the
+    tensor the compositing reads, so ``means2d.retain_grad()`` before backward gives the
+    screen-space gradients 3DGS densification uses (and ``means2d.absgrad`` with
+    ``absgrad=True``). ``conics`` the inverse dilated 2D covariance as ``(a, b, c)`` =
+    ``[[a, b], [b, c]]``, ``variances2d`` its diagonal (pixels^2, no gradient),
+    ``depths`` camera z of the mean, ``radii_xy`` integer pixel radius per axis ``(..., 2)``
+    (0 where culled), ``radii`` their maximum, ``visible`` the complement of culling,
+    ``opacities`` the opacities the compositing uses (times the antialiasing
+    compensation in ``"antialiased"`` mode; ``None`` when no opacities were given).
     """
 
     means2d: Tensor
@@ -28,6 +41,8 @@ class Projection:
     depths: Tensor
     radii: Tensor
     visible: Tensor
+    radii_xy: Tensor
+    opacities: Tensor | None = None
 
 
 def project_gaussians(
@@ -41,13 +56,31 @@ def project_gaussians(
     near: float,
     far: float,
     eps2d: float,
-    radius_sigma: float,
+    radius_sigma: float | None = None,
+    radius_rule: RadiusRule = "gsplat<=1.4",
+    radius_clip: float = 0.0,
+    opacities: Tensor | None = None,
+    rasterize_mode: RasterizeMode = "classic",
 ) -> Projection:
     """Project ``(B, N)`` Gaussians into ``(B, V)`` cameras; differentiable in the Gaussians.
 
-    Culled Gaussians (z outside [near, far], degenerate 2D covariance, footprint fully
-    off-image) get radius 0 and finite, gradient-free placeholder values.
+    Radius rules (``k = radius_sigma``, default 3 and 3.33 respectively):
+
+    - ``"gsplat<=1.4"``: one radius ``ceil(k sqrt(lambda_max))`` with
+      ``lambda_max = m + sqrt(max(0.01, m^2 - det))``, ``m`` the mean of the dilated 2D
+      covariance's diagonal, as gsplat 1.0-1.4.
+    - ``"gsplat>=1.5"``: per-axis radii ``ceil(e sqrt(Sigma_xx))``, ``ceil(e sqrt(Sigma_yy))``
+      with the opacity-aware ``e = min(k, sqrt(2 log(255 o)))``; Gaussians with
+      ``o < 1/255`` are culled (``o`` the effective opacity; needs ``opacities``).
+
+    ``rasterize_mode="antialiased"`` multiplies the opacities by gsplat's compensation
+    ``sqrt(max(0, det(Sigma2d) / det(Sigma2d + eps2d I)))`` (differentiable). Culled
+    Gaussians (z outside [near, far], degenerate 2D covariance, radius at most
+    ``radius_clip`` on every axis, footprint fully off-image) get radius 0 and finite,
+    gradient-free placeholder values.
     """
+    if radius_sigma is None:
+        radius_sigma = RADIUS_SIGMA[radius_rule]
     height, width = image_size
     rotation = world_to_cam[..., :3, :3].unsqueeze(2)  # (B, V, 1, 3, 3)
     translation = world_to_cam[..., :3, 3].unsqueeze(2)  # (B, V, 1, 3)
@@ -82,17 +115,44 @@ def project_gaussians(
     det_safe = torch.where(ok_det, det, torch.ones_like(det))
     conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
     means2d = torch.stack([fx * x / z_safe + cx, fy * y / z_safe + cy], dim=-1)
+    effective = None
+    if opacities is not None:
+        effective = opacities.unsqueeze(1).expand_as(z)
+        if rasterize_mode == "antialiased":
+            undilated = cov2d[..., 0, 0] * cov2d[..., 1, 1] - b * b
+            effective = effective * torch.sqrt((undilated / det_safe).clamp_min(0))
 
     with torch.no_grad():
-        mid = 0.5 * (a + c)
-        lambda_max = mid + torch.sqrt((mid * mid - det).clamp_min(0))
-        radius = torch.ceil(radius_sigma * torch.sqrt(lambda_max.clamp_min(0)))
+        if radius_rule == "gsplat<=1.4":
+            mid = 0.5 * (a + c)
+            lambda_max = mid + torch.sqrt((mid * mid - det).clamp_min(0.01))
+            radius = torch.ceil(radius_sigma * torch.sqrt(lambda_max.clamp_min(0)))
+            radius = radius.unsqueeze(-1).expand(*radius.shape, 2)
+            opaque_enough = torch.ones_like(ok_det)
+        else:
+            extent = torch.full_like(z, radius_sigma)
+            opaque_enough = torch.ones_like(ok_det)
+            if effective is not None:
+                o = effective.detach()
+                opaque_enough = o >= ALPHA_THRESHOLD
+                aware = torch.sqrt(2 * torch.log(o.clamp_min(ALPHA_THRESHOLD) / ALPHA_THRESHOLD))
+                extent = torch.minimum(extent, aware)
+            radius = torch.ceil(extent.unsqueeze(-1) * torch.stack([a, c], -1).clamp_min(0).sqrt())
         radius = radius.nan_to_num(0.0).clamp(0, _MAX_RADIUS)
+        rx, ry = radius.unbind(-1)
         mx, my = means2d.unbind(-1)
-        on_image = (
-            (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
-        )
-        visible = in_depth & ok_det & on_image & (radius > 0)
-        radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
+        on_image = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
+        big_enough = (rx > radius_clip) | (ry > radius_clip)
+        visible = in_depth & ok_det & opaque_enough & on_image & big_enough
+        radii_xy = torch.where(visible.unsqueeze(-1), radius, 0.0).to(torch.int32)
     variances2d = torch.stack([a, c], dim=-1).detach()
-    return Projection(means2d, conics, variances2d, torch.where(in_depth, z, zero), radii, visible)
+    return Projection(
+        means2d,
+        conics,
+        variances2d,
+        torch.where(in_depth, z, zero),
+        radii_xy.amax(-1),
+        visible,
+        radii_xy,
+        effective,
+    )

@@ -37,14 +37,14 @@ def contributing_extents(
 
     That region is the ellipse ``sigma <= log(o / alpha_min)``, whose bounding box has
     half-extents ``sqrt(2 log(o / alpha_min) var)`` per axis; it is intersected with the
-    radius box. Dropping what lies outside is lossless: there alpha < alpha_min, which
-    the compositing rules skip anyway. Returns the extents ``(..., 2)`` (0 = nothing to
-    draw) and ``max_sigma = log(o / alpha_min)``.
+    radius box (``radii`` ``(..., 2)``, per axis). Dropping what lies outside is lossless:
+    there alpha < alpha_min, which the compositing rules skip anyway. Returns the extents
+    ``(..., 2)`` (0 = nothing to draw) and ``max_sigma = log(o / alpha_min)``.
     """
     max_sigma = torch.log(opacities.detach().clamp_min(1e-30) / alpha_min)
     reach = torch.sqrt(2 * max_sigma.clamp_min(0).unsqueeze(-1) * variances2d) * (1 + 1e-4) + 1e-3
-    extents = torch.minimum(reach, radii.unsqueeze(-1).to(reach.dtype))
-    drawn = (radii > 0) & (max_sigma >= 0)
+    extents = torch.minimum(reach, radii.to(reach.dtype))
+    drawn = (radii > 0).all(-1) & (max_sigma >= 0)
     return torch.where(drawn.unsqueeze(-1), extents, torch.zeros_like(extents)), max_sigma
 
 
