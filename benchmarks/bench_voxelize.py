@@ -10,7 +10,15 @@ Workload: 10,000 Gaussians in the Occ3D volume (scales 0.05-1 m), C = 16, the Oc
 2. Ours, ``neighborhood="ellipsoid"`` (k = 3) vs a dense evaluation of every Gaussian at
    every voxel centre, chunked over Gaussians (float64 quadratic form by one GEMM).
 
+``--precision`` instead measures float32 accuracy (no timings): the same float32 inputs are
+voxelised in float32 by ours and by the official algorithm, and compared with a float64
+evaluation of those inputs (the official algorithm run in float64; ours in float64 is
+compared with it too). Workloads: the one above (independent log-uniform scales per
+axis, anisotropy up to 20:1), needles (long axis 0.2-1 m, the other two 50x thinner), and
+the first on a 0.5 m grid (a voxel size float32 represents exactly, unlike 0.4 m).
+
     python benchmarks/bench_voxelize.py [--device cuda] [--repeats 3] [--skip-dense]
+    python benchmarks/bench_voxelize.py --precision [--n 10000]
 """
 
 from __future__ import annotations
@@ -90,6 +98,54 @@ def dense(gs: GaussianSet, grid: VoxelGrid, chunk: int = 64) -> tuple[torch.Tens
     return density, total[:, 1:].view(*grid.shape, -1)
 
 
+def needle_gaussians(n: int, channels: int, *, seed: int = 0) -> GaussianSet:
+    """The benchmark workload with needle scales: long axis 0.2-1 m, the other two 50x
+    thinner, random rotations."""
+    gs = occ3d_gaussians(n, channels, seed=seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    long = 0.2 + 0.8 * torch.rand(1, n, 1, generator=g)
+    return gs.replace(scales=long * torch.tensor([1.0, 0.02, 0.02]))
+
+
+def precision_report(n: int) -> None:
+    """Max abs. differences from a float64 evaluation of the same float32 inputs."""
+    occ3d = VoxelGrid.occ3d()
+    exact = VoxelGrid((-40.0, -40.0, -1.0), (40.0, 40.0, 5.5), 0.5)  # 0.5 m: exact in float32
+    print(f"torch {torch.__version__}; {n} Gaussians, C = 16, nbh = 5; max |diff|")
+    print(f"  {'workload / result':<62} {'density':>9} {'features':>9}  (max |feature|)")
+    for name, gs32, grid in (
+        ("scales 0.05-1 m", occ3d_gaussians(n, 16), occ3d),
+        ("needles 50:1", needle_gaussians(n, 16), occ3d),
+        ("scales 0.05-1 m, 0.5 m voxels", occ3d_gaussians(n, 16), exact),
+    ):
+        gs64 = gs32.to(torch.float64)
+        with torch.no_grad():
+            ref_density, ref_features = official_cube(gs64, grid, 5)
+            ell64 = voxelize(gs64, grid)
+            results = {
+                "official algorithm, float32": official_cube(gs32, grid, 5),
+                "ours cube, float32": voxelize(gs32, grid, neighborhood="cube", nbh=5),
+                "ours cube, float64": voxelize(gs64, grid, neighborhood="cube", nbh=5),
+                "ours ellipsoid k=3, float32 (vs ours float64)": voxelize(gs32, grid),
+            }
+        official32 = results["official algorithm, float32"]
+        for label, out in [*results.items(), ("ours cube, float32 (vs official float32)", None)]:
+            if out is None:
+                out, expected = results["ours cube, float32"], official32
+            elif label.startswith("ours ellipsoid"):
+                expected = (ell64.density[0], ell64.features[0])
+            else:
+                expected = (ref_density, ref_features)
+            density, features = out if isinstance(out, tuple) else (out.density, out.features)
+            expected = tuple(t.double() for t in expected)
+            d = float((density.reshape(expected[0].shape).double() - expected[0]).abs().max())
+            f = float((features.reshape(expected[1].shape).double() - expected[1]).abs().max())
+            print(
+                f"  {name + ': ' + label:<62} {d:9.1e} {f:9.1e}  "
+                f"({float(expected[1].abs().max()):.2g})"
+            )
+
+
 def row(label: str, seconds: float, peak: float, note: str = "") -> None:
     print(f"  {label:<46} {seconds:9.3f} s  peak {peak:8.1f} MiB  {note}")
 
@@ -97,7 +153,12 @@ def row(label: str, seconds: float, peak: float, note: str = "") -> None:
 def main() -> None:
     parser = benchmark_parser(__doc__, repeats=3)
     parser.add_argument("--skip-dense", action="store_true")
+    parser.add_argument("--precision", action="store_true", help="float32 accuracy, no timing")
+    parser.add_argument("--n", type=int, default=10_000, help="Gaussians (--precision)")
     args = parser.parse_args()
+    if args.precision:
+        precision_report(args.n)
+        return
     device = torch.device(args.device)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}")
     grid = VoxelGrid.occ3d()

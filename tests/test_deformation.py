@@ -1153,3 +1153,18 @@ def test_fixed_mask_gets_no_mask_gradient_and_loss() -> None:
 def test_fixed_mask_rejects_bad_values(value: object) -> None:
     with pytest.raises(ValueError, match="fixed_mask"):
         DecoupledDeformation(4, fixed_mask=value)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("field", ["means", "quats", "scales", "opacities", "features"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_inputs_are_rejected_naming_the_field(field: str, value: float) -> None:
+    module = DecoupledDeformation(4, hidden_dim=8, depth=2, head_hidden=8)
+    gs = make_gaussian_set((1,), 6, seed=0, dtype=torch.float32)
+    tensors = {
+        name: getattr(gs, name).clone() for name in ("means", "quats", "scales", "opacities")
+    }
+    tensors["features"] = torch.zeros(1, 6, 4)
+    tensors[field].view(-1)[3] = value
+    gs = GaussianSet(**{k: v for k, v in tensors.items() if k != "features"})
+    with pytest.raises(ValueError, match=rf"{field}: 1 of \d+ values are not finite"):
+        module(gs, tensors["features"], torch.tensor([0.0, 1.0]))

@@ -237,3 +237,133 @@ def test_projector_bad_input() -> None:
         proj(torch.randn(2, 4, dtype=torch.float64))
     with pytest.raises(TypeCheckError, match="parameter 'features'"):
         proj(torch.ones(2, 4, dtype=torch.long))
+
+
+# -- NaN containment, empty masks, dtypes (issue 17) ----------------------------------
+_BAD = st.sampled_from([float("nan"), float("inf"), float("-inf")])
+
+
+def _loss_and_grads(
+    student: torch.Tensor, teacher: torch.Tensor, mask: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    s = student.detach().clone().requires_grad_(True)
+    t = teacher.detach().clone().requires_grad_(True)
+    loss = distillation_loss(s, t, mask)
+    loss.backward()
+    assert s.grad is not None and t.grad is not None
+    return loss.detach(), s.grad, t.grad
+
+
+@given(
+    shape=st.tuples(
+        st.integers(1, 2),
+        st.integers(1, 2),
+        st.integers(1, 4),
+        st.integers(1, 3),
+        st.integers(1, 3),
+    ),
+    seed=st.integers(0, 2**31 - 1),
+    valid_fraction=st.floats(0.0, 1.0),
+    bad=_BAD,
+    where=st.sampled_from(["student", "teacher", "both"]),
+    uint8=st.booleans(),
+)
+def test_nonfinite_values_in_masked_out_pixels_change_neither_loss_nor_gradients(
+    shape: tuple[int, ...], seed: int, valid_fraction: float, bad: float, where: str, uint8: bool
+) -> None:
+    b, v, _, h, w = shape
+    student, teacher = _maps(*shape, seed=seed), _maps(*shape, seed=seed + 1)
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.rand(b, v, h, w, generator=g, dtype=torch.float64) < valid_fraction
+    # Poison a random subset of the channels of every masked-out pixel.
+    plant = (torch.rand(*shape, generator=g) < 0.5) & ~mask.unsqueeze(2)
+    poisoned_s = torch.where(plant, bad, student) if where != "teacher" else student
+    poisoned_t = torch.where(plant, bad, teacher) if where != "student" else teacher
+    m = mask.to(torch.uint8) if uint8 else mask
+    clean = _loss_and_grads(student, teacher, m)
+    dirty = _loss_and_grads(poisoned_s, poisoned_t, m)
+    for expected, got in zip(clean, dirty, strict=True):
+        assert torch.equal(got, expected)
+    assert torch.isfinite(dirty[0])
+    # Masked-out pixels receive exactly zero gradient.
+    for grad in dirty[1:]:
+        assert torch.equal(grad * ~mask.unsqueeze(2), torch.zeros_like(grad))
+    if not mask.any():
+        assert dirty[0].item() == 0.0
+
+
+@given(seed=st.integers(0, 2**31 - 1), bad=_BAD)
+def test_all_masked_out_poisoned_batch_is_zero_with_zero_gradient(seed: int, bad: float) -> None:
+    student = torch.full((1, 2, 3, 2, 2), bad, dtype=torch.float64)
+    teacher = _maps(1, 2, 3, 2, 2, seed=seed)
+    teacher[0, 1] = bad
+    loss, gs, gt = _loss_and_grads(student, teacher, torch.zeros(1, 2, 2, 2, dtype=torch.bool))
+    assert loss.item() == 0.0
+    assert torch.equal(gs, torch.zeros_like(gs)) and torch.equal(gt, torch.zeros_like(gt))
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+@pytest.mark.parametrize("masked", [False, True])
+def test_nonfinite_values_in_valid_pixels_propagate(bad: float, masked: bool) -> None:
+    student, teacher = _maps(1, 1, 3, 2, 2), _maps(1, 1, 3, 2, 2, seed=1)
+    student[0, 0, 1, 0, 0] = bad
+    mask = torch.ones(1, 1, 2, 2, dtype=torch.bool) if masked else None
+    loss, grad, _ = _loss_and_grads(student, teacher, mask)
+    assert torch.isnan(loss)
+    assert not torch.isfinite(grad).all()
+
+
+@pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
+@given(seed=st.integers(0, 2**31 - 1), scale=st.sampled_from([1e-3, 1.0, 300.0, 3e4]))
+def test_half_inputs_are_computed_in_float32(half: torch.dtype, seed: int, scale: float) -> None:
+    # |x| = 300: x^2 overflows float16 (65504), so a native float16 norm would give inf.
+    student = (scale * _maps(2, 2, 8, 3, 3, seed=seed)).clamp(-6e4, 6e4).to(half)
+    teacher = (scale * _maps(2, 2, 8, 3, 3, seed=seed + 1)).clamp(-6e4, 6e4).to(half)
+    mask = _maps(2, 2, 3, 3, seed=seed + 2) > 0
+    for m in (None, mask):
+        loss = distillation_loss(student, teacher, m)
+        assert loss.dtype == half and torch.isfinite(loss)
+        reference = distillation_loss(student.float(), teacher.float(), m)
+        torch.testing.assert_close(loss.float(), reference.to(half).float(), rtol=0, atol=0)
+    distance = cosine_distance_map(student, teacher)
+    assert distance.dtype == half
+    torch.testing.assert_close(
+        distance, cosine_distance_map(student.float(), teacher.float()).to(half), rtol=0, atol=0
+    )
+
+
+@pytest.mark.parametrize(
+    ("student_dtype", "teacher_dtype"),
+    [
+        (torch.float32, torch.float64),
+        (torch.float16, torch.float32),
+        (torch.bfloat16, torch.float16),
+        (torch.float64, torch.bfloat16),
+    ],
+)
+def test_mixed_dtypes_are_a_type_error_naming_teacher(
+    student_dtype: torch.dtype, teacher_dtype: torch.dtype
+) -> None:
+    s = torch.randn(1, 1, 2, 2, 2, dtype=student_dtype)
+    t = torch.randn(1, 1, 2, 2, 2, dtype=teacher_dtype)
+    message = rf"teacher: dtype {teacher_dtype} differs from student's {student_dtype}"
+    for call in (distillation_loss, cosine_distance_map, DistillationLoss()):
+        with pytest.raises(TypeError, match=message):
+            call(s, t)
+
+
+@pytest.mark.parametrize("b, v, h, w", [(0, 2, 3, 3), (1, 0, 3, 3), (1, 2, 0, 3), (2, 1, 3, 0)])
+def test_empty_axes_give_zero_with_zero_gradient(b: int, v: int, h: int, w: int) -> None:
+    student, teacher = _maps(b, v, 4, h, w), _maps(b, v, 4, h, w, seed=1)
+    for mask in (None, torch.ones(b, v, h, w, dtype=torch.bool)):
+        loss, gs, gt = _loss_and_grads(student, teacher, mask)
+        assert loss.item() == 0.0 and gs.shape == student.shape and gt.shape == teacher.shape
+    assert cosine_distance_map(student, teacher).shape == (b, v, h, w)
+
+
+@given(shape=st.tuples(st.integers(0, 2), st.integers(0, 3), st.integers(1, 4)))
+def test_projector_handles_empty_leading_axes(shape: tuple[int, int, int]) -> None:
+    proj = StudentProjector(shape[-1], 5, hidden_dim=3).double()
+    x = torch.randn(*shape, dtype=torch.float64)
+    out = proj(x)
+    assert out.shape == (*shape[:-1], 5) and out.dtype == torch.float64

@@ -381,6 +381,65 @@ def test_check_values_rejects_zero_quaternion_and_passes_valid_sets() -> None:
 
 
 # ---------------------------------------------------------------------------------------
+# degenerate inputs of the helpers: zero quaternions, huge quaternions, zero scales
+# ---------------------------------------------------------------------------------------
+
+
+def test_zero_quaternion_stays_finite_through_the_eps_clamp(dtype: torch.dtype) -> None:
+    # Without the eps clamp these are 0 / 0 = NaN.
+    zero = torch.zeros(3, 4, dtype=dtype, requires_grad=True)
+    unit = normalize_quaternions(zero)
+    assert bool(torch.isfinite(unit).all()) and bool((unit == 0).all())
+    rotation = quaternions_to_rotation_matrices(zero)
+    torch.testing.assert_close(rotation, torch.eye(3, dtype=dtype).expand(3, 3, 3))
+    for out in (unit, rotation):
+        (grad,) = torch.autograd.grad(out.sum(), zero)
+        assert bool(torch.isfinite(grad).all())
+    # below eps the norm is clamped: q / eps, not a unit quaternion
+    tiny = torch.tensor([1e-13, 0.0, 0.0, 0.0], dtype=dtype)
+    torch.testing.assert_close(normalize_quaternions(tiny), tiny / 1e-12)
+    assert bool(torch.isfinite(normalize_quaternions(tiny, eps=0.0)).all())
+
+
+@given(
+    st.integers(0, 2**31 - 1), st.floats(-11, 30), st.sampled_from([torch.float32, torch.float64])
+)
+def test_quaternions_of_any_magnitude_normalise_to_the_same_rotation(
+    seed: int, exponent: float, dtype: torch.dtype
+) -> None:
+    # taken directly, a float32 |q| overflows to inf past 1.8e19 (and q / |q| gives 0)
+    q = torch.randn(5, 4, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+    scaled = (q * 10.0**exponent).to(dtype)
+    tolerance = {"atol": 1e-6, "rtol": 1e-6} if dtype == torch.float32 else {}
+    torch.testing.assert_close(normalize_quaternions(scaled), q.to(dtype), **tolerance)
+    torch.testing.assert_close(
+        quaternions_to_rotation_matrices(scaled),
+        quaternions_to_rotation_matrices(q).to(dtype),
+        **tolerance,
+    )
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.5, float("nan")])
+def test_precisions_of_a_non_positive_scale_raise_naming_scales(bad: float) -> None:
+    gs = make_gaussian_set((2,), 3, seed=4, scale_range=(0.5, 2.0))
+    scales = gs.scales.clone()
+    scales[1, 2, 0] = bad
+    with pytest.raises(ValueError, match=r"^scales: 1 of 18 values are not positive"):
+        build_precisions(gs.quats, scales)
+    with pytest.raises(ValueError, match=r"^scales: 1 of 18 values are not positive"):
+        GaussianSet(gs.means, gs.quats, scales, gs.opacities).precisions()
+    # covariances stay defined (s^2) and are not checked
+    assert bool(torch.isfinite(build_covariances(gs.quats, scales.nan_to_num(1.0))).all())
+
+
+def test_precisions_compile_without_a_graph_break() -> None:
+    gs = make_gaussian_set((2,), 5, dtype=torch.float32, scale_range=(0.5, 2.0))
+    compiled = torch.compile(lambda g: g.precisions(), backend="eager", fullgraph=True)
+    torch.testing.assert_close(compiled(gs), gs.precisions())
+
+
+# ---------------------------------------------------------------------------------------
 # differentiability and compilation
 # ---------------------------------------------------------------------------------------
 

@@ -8,6 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from jaxtyping import TypeCheckError
 
+import dego
 from dego import VoxelGrid
 
 
@@ -111,3 +112,80 @@ def test_bad_tensor_arguments_name_the_parameter() -> None:
         grid.contains(torch.zeros(4, 3, dtype=torch.long))
     with pytest.raises(TypeCheckError, match="parameter 'index'"):
         grid.index_to_world(torch.zeros(4, 3))
+
+
+# -- edge values (issue 17) -----------------------------------------------------------
+_NON_FINITE = st.sampled_from([float("nan"), float("inf"), float("-inf")])
+_GOOD = {"lower": (0.0, 0.0, 0.0), "upper": (4.0, 4.0, 4.0), "voxel_size": 0.5}
+
+
+@given(
+    st.sampled_from(["lower", "upper", "voxel_size"]),
+    _NON_FINITE,
+    st.one_of(st.none(), st.integers(0, 2)),
+)
+def test_non_finite_bounds_name_the_argument(name: str, bad: float, axis: int | None) -> None:
+    # axis None: a scalar for all three axes; else one bad value in a per-axis triple.
+    value: float | list[float]
+    if axis is None:
+        value = bad
+    else:
+        good = _GOOD[name]
+        value = list(good) if isinstance(good, tuple) else [good] * 3
+        value[axis] = bad
+    with pytest.raises(ValueError, match=rf"^{name}: values must be finite"):
+        VoxelGrid(**{**_GOOD, name: value})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"upper": 1e-9}, ValueError, "voxel_size: the x extent .* is less than one"),
+        ({"lower": -1e308, "upper": 1e308}, ValueError, "voxel_size: the x extent .* at most"),
+        ({"voxel_size": 1e-300}, ValueError, r"voxel_size: the x extent .* at most 2\*\*53"),
+        ({"lower": "0"}, TypeError, "lower: expected a number or 3 numbers"),
+        ({"upper": None}, TypeError, "upper: expected a number or 3 numbers"),
+        ({"voxel_size": True}, TypeError, "voxel_size: expected a number or 3 numbers"),
+        ({"voxel_size": (0.5, "0.5", 0.5)}, TypeError, "voxel_size: expected 3 numbers"),
+        ({"lower": (0, 0, 0, 0)}, ValueError, "lower: expected 3 values"),
+        ({"lower": torch.tensor(0.0)}, TypeError, "lower: expected a number or 3 numbers"),
+    ],
+)
+def test_degenerate_and_non_numeric_grids(kwargs: dict, error: type, match: str) -> None:
+    with pytest.raises(error, match=match):
+        VoxelGrid(**{**_GOOD, **kwargs})
+
+
+def test_numpy_and_tensor_bounds_are_accepted() -> None:
+    np = pytest.importorskip("numpy")
+    grid = VoxelGrid(np.float32(-1.0), torch.tensor([1.0, 1.0, 1.0]), np.array([0.5, 0.5, 0.5]))
+    assert grid.shape == (4, 4, 4) and grid.lower == (-1.0, -1.0, -1.0)
+
+
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(allow_nan=True, allow_infinity=True, width=32),
+            st.sampled_from([1e30, -1e30, 3e38]),
+        ),
+        min_size=3,
+        max_size=3,
+    ),
+    st.sampled_from([torch.float16, torch.bfloat16, torch.float32, torch.float64]),
+)
+def test_world_to_index_is_defined_for_any_point(coords: list[float], dtype: torch.dtype) -> None:
+    grid = VoxelGrid.occ3d()
+    point = torch.tensor([coords], dtype=dtype)
+    index = grid.world_to_index(point)
+    assert index.dtype == torch.long and (index.abs() <= 2**62).all()
+    # A point is inside exactly when its index is (NaN coordinates are neither).
+    assert torch.equal(grid.contains(point), grid.contains_index(index))
+
+
+def test_centers_go_through_the_memory_guard() -> None:
+    grid = VoxelGrid(0.0, 1.0, 0.01)  # 10^6 voxels
+    with (
+        dego.memory_limit(1000),
+        pytest.raises(ValueError, match=r"VoxelGrid.centers: .*100 x 100 x 100 voxels"),
+    ):
+        grid.centers()

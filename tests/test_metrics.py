@@ -104,6 +104,29 @@ def test_ignore_label_is_skipped() -> None:
     assert metrics.compute().per_class[4].item() == 1.0
 
 
+@pytest.mark.parametrize("ignore", [-1, -100, 1000])
+def test_ignore_labels_below_zero_or_above_255_are_skipped(ignore: int) -> None:
+    """``bincount`` once failed on the negative keys of ``ignore_label=-1``; a large ignore
+    label now costs no more bins than 255 does."""
+    gt = torch.tensor([[[4, ignore, ignore, 17]]], dtype=torch.int16)
+    pred = torch.tensor([[[4, 4, 17, 17]]], dtype=torch.int16)
+    metrics = OccupancyMetrics("occ3d", ignore_label=ignore)
+    metrics.update(pred, gt)
+    metrics.update(pred[None], gt[None], torch.ones(1, 1, 1, 4, dtype=torch.bool))
+    assert int(metrics.confusion.sum()) == 4
+    assert metrics.compute().per_class[4].item() == 1.0
+
+
+def test_empty_batches_add_nothing() -> None:
+    metrics = OccupancyMetrics("occ3d")
+    empty = torch.zeros(0, 6, 5, 4, dtype=torch.uint8)
+    metrics.update(empty, empty, torch.zeros(0, 6, 5, 4, dtype=torch.bool))
+    assert int(metrics.confusion.sum()) == 0
+    assert torch.equal(confusion_matrix(empty, empty), torch.zeros(18, 18, dtype=torch.long))
+    with pytest.raises(RuntimeError, match="no voxel has been evaluated"):
+        metrics.compute()
+
+
 # ---------------------------------------------------------------------------------------
 # agreement with the reference recipe, to the last digit
 # ---------------------------------------------------------------------------------------

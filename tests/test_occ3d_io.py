@@ -299,14 +299,32 @@ def test_from_arrays_converts_tensors_and_checks_values() -> None:
         Occ3DLabels.from_arrays(
             arrays["semantics"], arrays["mask_camera"] - 1, arrays["mask_lidar"]
         )
-    with pytest.raises(ValueError, match="semantics: expected integer labels"):
+    with pytest.raises(TypeError, match="semantics: expected integer labels"):
         Occ3DLabels.from_arrays(
             torch.from_numpy(arrays["semantics"]).float(),
             arrays["mask_camera"],
             arrays["mask_lidar"],
         )
+    with pytest.raises(TypeError, match="semantics: expected integer labels, got dtype bool"):
+        Occ3DLabels.from_arrays(
+            arrays["semantics"].astype(bool), arrays["mask_camera"], arrays["mask_lidar"]
+        )
+    with pytest.raises(TypeError, match="mask_lidar: expected a bool mask or integers 0/1"):
+        Occ3DLabels.from_arrays(
+            arrays["semantics"], arrays["mask_camera"], arrays["mask_lidar"].astype(np.float32)
+        )
     empty = np.zeros((0, 2, 2), np.uint8)
     assert Occ3DLabels.from_arrays(empty, empty, empty).shape == (0, 2, 2)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int8, np.int16, np.int32, np.int64])
+def test_every_integer_dtype_reads_and_writes_the_same(tmp_path: Path, dtype: type) -> None:
+    arrays = _arrays(SMALL, seed=6)
+    typed = {key: value.astype(dtype) for key, value in arrays.items()}
+    labels = Occ3DLabels.from_arrays(typed["semantics"], typed["mask_camera"], typed["mask_lidar"])
+    _assert_matches(labels, arrays)
+    path = _write_npz(tmp_path / "t.npz", **typed)
+    _assert_equal(load_occ3d_labels(path, expected_shape=None), labels)
 
 
 # -- Occ3DDataset --------------------------------------------------------------------------

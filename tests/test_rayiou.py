@@ -411,7 +411,7 @@ def test_bad_update_input() -> None:
         metric.update(pred, gt, np.zeros((0, 3)))
     with pytest.raises(ValueError, match=r"origins: expected \(K, 3\)"):
         metric.update(pred, gt, origins[0])
-    with pytest.raises(ValueError, match="origins: expected finite"):
+    with pytest.raises(ValueError, match="origins: 3 of 3 values are not finite"):
         metric.update(pred, gt, np.full((1, 3), np.nan))
     with pytest.raises(ValueError, match=r"pred: expected shape \(20, 20, 6\)"):
         metric.update(pred[:, :, :5], gt, origins)
@@ -449,11 +449,59 @@ def test_bad_update_input() -> None:
         ({"rays": torch.zeros(0, 3)}, "rays"),
         ({"rays": torch.ones(4, 2)}, "rays"),
         ({"rays": torch.ones(3)}, "rays"),
+        ({"rays": torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])}, "rays: 1 of 2 .* zero"),
+        ({"rays": torch.tensor([[1e-50, 0.0, 0.0]], dtype=torch.float64)}, "underflow"),
+        ({"rays": torch.tensor([[math.nan, 1.0, 0.0]])}, "rays: 1 of 3 values are not finite"),
+        ({"rays": torch.tensor([[math.inf, 1.0, 0.0]])}, "rays: .* not finite"),
     ],
 )
 def test_bad_configuration(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         RayIoU(grid=SMALL_GRID, **kwargs)
+
+
+def test_integer_rays_are_refused() -> None:
+    with pytest.raises(TypeError, match="rays: expected a floating"):
+        RayIoU(grid=SMALL_GRID, rays=torch.ones(2, 3, dtype=torch.long))
+
+
+def test_ray_length_does_not_matter() -> None:
+    """Rays of length 1e-8 once gave NaN distances and a RayIoU of 0. Power-of-two
+    multiples give identical counts; other lengths the same up to float32 rounding of the
+    scaled rays (on this scene: identical)."""
+    pred, gt, origins = random_scene(12)
+    unit = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS)
+    unit.update(pred, gt, origins)
+    for scale in (2.0**-27, 2.0**40, 1e-8, 1e8):
+        metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS * scale)
+        metric.update(pred, gt, origins)
+        for name in ("gt_count", "pred_count", "true_positives"):
+            assert torch.equal(getattr(metric, name), getattr(unit, name)), (scale, name)
+    assert unit.compute().rayiou > 0.3
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.float32, torch.float64, torch.int32])
+def test_origins_of_any_real_dtype_are_used_in_float64(dtype: torch.dtype) -> None:
+    pred, gt, _ = random_scene(13)
+    origins = torch.tensor([[0.5, -1.0, 0.25], [-3.0, 2.0, 0.0]])
+    reference, metric = (RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS) for _ in range(2))
+    reference.update(pred, gt, origins.to(dtype).double())
+    metric.update(pred, gt, origins.to(dtype))
+    assert torch.equal(metric.true_positives, reference.true_positives)
+
+
+def test_memory_guard_trips_before_casting() -> None:
+    import dego
+
+    pred, gt, origins = random_scene(14)
+    metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS)
+    with dego.memory_limit(1000), pytest.raises(ValueError, match=r"RayIoU.update: .*memory limit"):
+        metric.update(pred, gt, origins)
+    assert int(metric.gt_count.sum()) == 0
+    # 10^6 origins x 265 rays: refused at a 1 GiB limit before any ray is cast
+    many = torch.zeros(1, 3, dtype=torch.float64).expand(10**6, 3)
+    with dego.memory_limit(2**30), pytest.raises(ValueError, match=r"265000000 rays"):
+        metric.update(pred, gt, many)
 
 
 # ---------------------------------------------------------------------------------------

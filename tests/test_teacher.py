@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jaxtyping import TypeCheckError
 
+import dego
 from dego.teacher import (
     FactorizedSpatioTemporalTeacher,
     FactorizedTeacherFeatures,
@@ -296,3 +297,121 @@ def test_bad_target_requests() -> None:
     with pytest.raises(ValueError, match="out_dim"):
         FactorizedTeacherFeatures(8, 0)
     assert isinstance(out, TeacherOutput)
+
+
+# ---------------------------------------------------------------------------------------
+# empty axes, sizes, dtypes (issue 17)
+# ---------------------------------------------------------------------------------------
+
+
+@settings(max_examples=20)
+@given(st.integers(0, 2), st.integers(0, 2), st.integers(0, 2))
+def test_empty_clips_give_empty_outputs_of_the_right_shape(b: int, t: int, v: int) -> None:
+    teacher = small_teacher(depth=1)
+    out = teacher(clip(b, t, v))
+    p = out.patch_start_idx + 2 * 3
+    for block in (*out.spatial, *out.temporal):
+        assert block.shape == (b, t, v, p, 32) and block.dtype == torch.float64
+    features = FactorizedTeacherFeatures(64, 8).double()
+    if t == 0:
+        with pytest.raises(ValueError, match="teacher: holds T = 0 time steps"):
+            features(out, (5, 7))
+    else:
+        maps = features(out, (5, 7))
+        assert maps.shape == (b, v, 8, 5, 7)
+    # The same clip in VGGT layout: (B, S = T V, P, 2C) per block.
+    pairs = zip(out.spatial, out.temporal, strict=True)
+    blocks = [torch.cat([s, m], -1).flatten(1, 2) for s, m in pairs]
+    vggt = FactorizedTeacherFeatures(64, 8, patch_start_idx=out.patch_start_idx).double()
+    if t == 0:
+        with pytest.raises(ValueError, match="teacher: holds T = 0 time steps"):
+            vggt(blocks, (5, 7), patch_grid=(2, 3), num_cameras=max(v, 1))
+    elif v > 0:
+        assert vggt(blocks, (5, 7), patch_grid=(2, 3), num_cameras=v).shape == (b, v, 8, 5, 7)
+
+
+def test_images_smaller_than_a_patch_are_rejected() -> None:
+    teacher = small_teacher(depth=1)
+    for h, w in [(0, 2 * PATCH), (2 * PATCH, 0), (PATCH - 1, PATCH)]:
+        with pytest.raises(ValueError, match=r"images: H and W must be at least patch_size"):
+            teacher(torch.rand(1, 1, 1, 3, h, w, dtype=torch.float64))
+
+
+def test_teacher_outputs_without_blocks_are_rejected() -> None:
+    empty = TeacherOutput([], [], 5, (2, 3))
+    with pytest.raises(ValueError, match="teacher: holds no blocks"):
+        FactorizedTeacherFeatures(64)(empty, (4, 4))
+    with pytest.raises(ValueError, match="teacher: holds no blocks"):
+        FactorizedTeacherFeatures(64)([], (4, 4), patch_grid=(2, 3), num_cameras=1)
+    out = small_teacher(depth=1)(clip(1, 2, 2))
+    with pytest.raises(ValueError, match="patch_grid: expected"):
+        FactorizedTeacherFeatures(64).double()(
+            [torch.cat([out.spatial[0], out.temporal[0]], -1).flatten(1, 2)],
+            (4, 4),
+            patch_grid=(-2, -3),
+            num_cameras=2,
+        )
+
+
+def test_mixed_dtypes_are_type_errors() -> None:
+    teacher = small_teacher(depth=1)  # float64 parameters
+    with pytest.raises(TypeError, match=r"images: dtype torch.float32 differs from the teacher"):
+        teacher(clip(1, 1, 1, dtype=torch.float32))
+    out = teacher(clip(1, 2, 2))
+    mixed = TeacherOutput(out.spatial, [x.float() for x in out.temporal], 5, out.patch_grid)
+    with pytest.raises(TypeError, match=r"teacher: dtype torch.float32 differs"):
+        FactorizedTeacherFeatures(64).double()(mixed, (4, 4))
+    trainable = FactorizedTeacherFeatures(64, projector="trainable")  # float32 parameters
+    with pytest.raises(TypeError, match=r"teacher: dtype torch.float64 differs from the proj"):
+        trainable(out, (4, 4))
+
+
+@pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
+def test_half_teacher_tokens_are_projected_in_float32(half: torch.dtype) -> None:
+    out = small_teacher(depth=1, dtype=torch.float32)(clip(1, 2, 2, dtype=torch.float32))
+    features = FactorizedTeacherFeatures(64, 8)
+    halved = TeacherOutput(
+        [x.to(half) for x in out.spatial], [x.to(half) for x in out.temporal], 5, out.patch_grid
+    )
+    maps = features(halved, (5, 7))
+    assert maps.dtype == half and torch.isfinite(maps).all()
+    expected = features(
+        TeacherOutput(
+            [x.float() for x in halved.spatial],
+            [x.float() for x in halved.temporal],
+            5,
+            out.patch_grid,
+        ),
+        (5, 7),
+    )
+    torch.testing.assert_close(maps, expected.to(half), rtol=0, atol=0)
+
+
+def test_memory_guard_before_attention() -> None:
+    teacher = small_teacher(depth=1)
+    images = clip(1, 2, 2)
+    nbytes, sizes = teacher.memory_estimate(images.shape, 8)
+    assert nbytes > 1000 and "B*T*V = 1*2*2" in sizes and "T*P = 22" in sizes
+    with (
+        dego.memory_limit(1000),
+        pytest.raises(ValueError, match=r"FactorizedSpatioTemporalTeacher: .*memory limit"),
+    ):
+        teacher(images)
+    with dego.memory_limit(nbytes):
+        teacher(images)  # exactly at the limit: allowed
+    # Huge token counts are refused at the default limit without allocating anything.
+    big = torch.empty(1, 64, 6, 3, 1, 1, dtype=torch.float64).expand(1, 64, 6, 3, 1400, 1400)
+    with pytest.raises(ValueError, match="memory limit"):
+        teacher(big)
+    # The estimate grows quadratically with the frames attended jointly (T P > V P here).
+    small = teacher.memory_estimate((1, 12, 2, 3, 32, 48))[0]
+    assert teacher.memory_estimate((1, 24, 2, 3, 32, 48))[0] > 3 * small
+
+
+def test_memory_guard_on_target_maps() -> None:
+    out = small_teacher(depth=1)(clip(1, 2, 2))
+    with (
+        dego.memory_limit(1000),
+        pytest.raises(ValueError, match=r"FactorizedTeacherFeatures: .*memory limit"),
+    ):
+        FactorizedTeacherFeatures(64, 8).double()(out, (40, 40))

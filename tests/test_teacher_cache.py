@@ -206,7 +206,7 @@ def _corrupt(kind: str, path: Path, payload: bytes) -> None:
         path.write_bytes(buffer.getvalue())
     elif kind == "pickle":
         buffer = io.BytesIO()
-        np.savez(buffer, features=np.array([{"a": 1}], dtype=object))
+        np.savez(buffer, features=np.array([{"a": 1}], dtype=object), **_metadata())
         path.write_bytes(buffer.getvalue())
     elif kind == "flipped_byte":
         data = bytearray(good)
@@ -234,6 +234,10 @@ def _corrupt(kind: str, path: Path, payload: bytes) -> None:
         _write_npz(path, features=features, **meta)
     elif kind == "not_a_zip_member":
         with zipfile.ZipFile(path, "w") as archive:
+            for name, value in _metadata().items():
+                buffer = io.BytesIO()
+                np.save(buffer, value)
+                archive.writestr(f"{name}.npy", buffer.getvalue())
             archive.writestr("features.npy", b"\x93NUMPY garbage header")
     else:
         raise AssertionError(kind)

@@ -324,6 +324,31 @@ def test_compare_bev_bad_inputs(mpl: object) -> None:
         compare_bev(scene() + 1, scene())
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.int8, np.int16, np.int32, np.int64])
+def test_plots_do_not_depend_on_the_label_dtype(mpl: object, dtype: type) -> None:
+    labels = scene()[:10, :8, :4].numpy()
+    semantics = labels[:2, :, :].transpose(0, 2, 1)  # (V, H, W) = (2, 4, 8)
+    ours = camera_panels(semantics=semantics.astype(dtype))
+    reference = camera_panels(semantics=torch.from_numpy(semantics))
+    for a, b in zip(ours.axes, reference.axes, strict=True):
+        np.testing.assert_array_equal(a.images[0].get_array(), b.images[0].get_array())
+    ours_3d = plot_occupancy_3d(labels.astype(dtype)).collections[0]
+    reference_3d = plot_occupancy_3d(torch.from_numpy(labels)).collections[0]
+    np.testing.assert_array_equal(
+        np.asarray(ours_3d._offsets3d), np.asarray(reference_3d._offsets3d)
+    )
+
+
+def test_sentinel_labels_are_refused_naming_the_argument(mpl: object) -> None:
+    for bad in (torch.full((3, 3, 2), -1, dtype=torch.int8), torch.full((3, 3, 2), 255)):
+        with pytest.raises(ValueError, match=r"labels: expected Occ3D labels .* got values"):
+            plot_bev(bad.to(torch.uint8) if int(bad[0, 0, 0]) == 255 else bad)
+        with pytest.raises(ValueError, match=r"gt: expected Occ3D labels"):
+            compare_bev(torch.zeros(3, 3, 2, dtype=torch.int8), bad)
+        with pytest.raises(ValueError, match=r"semantics: expected Occ3D labels"):
+            camera_panels(semantics=bad)
+
+
 def test_camera_panels_rows_columns_and_colours(mpl: object, tmp_path: Path) -> None:
     views, height, width = 2, 12, 16
     images = torch.zeros(views, 3, height, width, dtype=torch.uint8)

@@ -234,12 +234,14 @@ def test_cube_matches_the_official_algorithm(gs: GaussianSet, nbh: int) -> None:
 @given(scenes(extent=3.0, max_n=60, dtype=torch.float32), st.sampled_from([1, 2, 3]))
 def test_cube_float32_matches_the_official_float32_algorithm(gs: GaussianSet, nbh: int) -> None:
     # Same centres and centre-minus-mean differences as the official float32 code; only its
-    # float32 rounding of the quadratic and the summation order differ.
+    # float32 rounding of the quadratic (ours is float64) and the summation order differ.
+    # Measured on the Occ3D benchmark workload (bench_voxelize.py --precision): up to
+    # 2e-6 / 8e-6 (density / features), 2e-5 / 5e-5 for 50:1 needles; 1e-6 was flaky here.
     out = voxelize(gs, GRID, neighborhood="cube", nbh=nbh)
     density, features = official_cube_voxelize(gs, GRID, None, nbh)
-    torch.testing.assert_close(out.density, density, atol=1e-6, rtol=0)
+    torch.testing.assert_close(out.density, density, atol=1e-5, rtol=0)
     scale = max(1.0, float(features.abs().max()))
-    torch.testing.assert_close(out.features, features, atol=1e-6 * scale, rtol=0)
+    torch.testing.assert_close(out.features, features, atol=1e-5 * scale, rtol=0)
 
 
 @pytest.mark.parametrize("mode", ["additive", "probabilistic"])
@@ -670,6 +672,11 @@ def test_gaussians_far_outside_or_transparent_give_empty_density(config: dict[st
         {"neighborhood": "cube", "nbh": -1},
         {"mode": "max"},
         {"neighborhood": "sphere"},
+        {"features": torch.zeros(2, 4, 3, dtype=torch.float32)},  # dtype differs
+        {"cutoff_sigma": float("nan")},
+        {"cutoff_sigma": 0.0},
+        {"cutoff_sigma": -1.0},
+        {"chunk_size": 0},
     ],
     ids=[
         "features-n",
@@ -679,6 +686,11 @@ def test_gaussians_far_outside_or_transparent_give_empty_density(config: dict[st
         "negative-nbh",
         "bad-mode",
         "bad-neighborhood",
+        "features-dtype",
+        "cutoff-nan",
+        "cutoff-zero",
+        "cutoff-negative",
+        "chunk-zero",
     ],
 )
 def test_bad_inputs_raise(kwargs: dict[str, Any]) -> None:

@@ -4,6 +4,7 @@ Implements the building blocks of "Deformable Gaussian Occupancy" (DeGO, CVPR 20
 so that they run on CPU and GPU, in float32 and float64, with checked shapes.
 """
 
+from dego._policy import get_memory_limit, memory_limit, set_memory_limit
 from dego._version import __version__
 from dego.cameras import apply_image_aug, resize_crop_intrinsics, split_projection
 from dego.classes import (
@@ -109,8 +110,10 @@ __all__ = [
     "deformation_loss",
     "distillation_loss",
     "generate_lidar_rays",
+    "get_memory_limit",
     "lidar_origins",
     "load_occ3d_labels",
+    "memory_limit",
     "normalize_quaternions",
     "observed_voxels",
     "per_class_iou",
@@ -120,6 +123,7 @@ __all__ = [
     "resize_crop_intrinsics",
     "rotation_matrices_to_quaternions",
     "save_occ3d_labels",
+    "set_memory_limit",
     "splat",
     "split_projection",
     "voxelize",

@@ -17,6 +17,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from dego._checks import check_int, check_positive
+from dego._policy import check_finite
 from dego._typing import typechecked
 from dego.encoding import positional_encoding
 from dego.gaussians import GaussianSet, _normalize, quaternion_multiply
@@ -359,6 +360,12 @@ class DecoupledDeformation(nn.Module):
                 f"gaussians: {gaussians.dtype} on {gaussians.device}, but the module's "
                 f"parameters are {weight.dtype} on {weight.device}; move one with .to()"
             )
+        inputs = [(f"gaussians.{name}", t) for name, t in gaussians._items()]
+        inputs.append(("features", features))
+        finite = torch.stack([torch.isfinite(t).all() for _, t in inputs]).tolist()
+        for (name, value), ok in zip(inputs, finite, strict=True):
+            if not ok:
+                check_finite(name, value)
         times = self._normalized_times(times, b)  # (B, T)
 
         static = torch.cat(

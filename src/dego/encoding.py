@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
-from dego._typing import typechecked
+from dego._policy import check_finite, compute_dtype
+from dego._typing import _is_compiling, typechecked
 
 Layout = Literal["coord_major", "freq_interleaved"]
 
@@ -18,6 +20,39 @@ def _check_levels(num_levels: int, include_input: bool) -> None:
         raise ValueError(f"num_levels: expected an int >= 0, got {num_levels!r}")
     if num_levels == 0 and not include_input:
         raise ValueError("num_levels: 0 levels without include_input would encode nothing")
+
+
+def _mantissa_bits(dtype: torch.dtype) -> int:
+    """p, the significand precision: 24 for float32, 53 float64, 11 float16, 8 bfloat16."""
+    return 1 - round(math.log2(torch.finfo(dtype).eps))
+
+
+def _check_resolution(x: Tensor, num_levels: int) -> None:
+    """ValueError unless the top octave ``2^(L-1) x`` is still resolved by ``x``'s dtype."""
+    dtype = compute_dtype(x.dtype)
+    exponent_limit = math.frexp(torch.finfo(dtype).max)[1]  # 2^(L-1) must be finite
+    if num_levels > exponent_limit:
+        raise ValueError(
+            f"num_levels: {num_levels} levels need frequencies up to 2^{num_levels - 1}, "
+            f"beyond {dtype}'s range; at most {exponent_limit}"
+        )
+    if num_levels == 0 or x.numel() == 0 or _is_compiling():
+        return
+    peak = float(x.detach().abs().amax())  # one reduction (and sync) per call
+    if not math.isfinite(peak):
+        check_finite("x", x)
+    if peak == 0.0:
+        return
+    p = _mantissa_bits(x.dtype)
+    # peak = m 2^e with m in [0.5, 1): 2^(L-1) peak < 2^p exactly when L - 1 <= p - e.
+    allowed = p - math.frexp(peak)[1] + 1
+    if num_levels > allowed:
+        raise ValueError(
+            f"num_levels: {num_levels} levels are too many for {x.dtype} x with |x| up to "
+            f"{peak:.6g}: 2^{num_levels - 1} |x| reaches 2^{p}, where {x.dtype} cannot resolve "
+            f"the phase of the top octave (its sinusoids would be rounding noise); use "
+            f"num_levels <= {max(allowed, 0)} for this x, rescale x, or give x in float64"
+        )
 
 
 @typechecked
@@ -31,7 +66,7 @@ def positional_encoding(
     """gamma(x) = [x, sin(2^k x), cos(2^k x)] for k = 0..L-1 (no factor pi).
 
     Args:
-        x: ``(*, D)`` inputs, any leading shape.
+        x: ``(*, D)`` finite inputs, any leading shape (including empty ones).
         num_levels: L, the number of octaves.
         include_input: prepend ``x`` itself.
         layout: channel order of the sinusoids.
@@ -45,17 +80,39 @@ def positional_encoding(
             sin(2^1 x), cos(2^1 x), ...]`` with each term a D-vector.
 
     Returns:
-        ``(*, D * (2L + 1))`` with ``include_input``, else ``(*, 2 D L)``.
+        ``(*, D * (2L + 1))`` with ``include_input``, else ``(*, 2 D L)``, in ``x``'s
+        dtype. float16 / bfloat16 inputs are computed in float32.
+
+    Raises:
+        ValueError: ``num_levels`` is too many for ``x``: the top frequency
+            ``2^(L-1) max|x|`` must stay below ``2^p``, p the significand bits of ``x``'s
+            dtype (24 float32, 53 float64, 11 float16, 8 bfloat16); beyond it the top
+            octave's phase is below the input's resolution and its sinusoids are rounding
+            noise (or NaN once ``2^(L-1)`` overflows). The message gives the largest
+            ``num_levels`` allowed for this ``x``. Also raised for NaN or inf in ``x``.
+
+    The limit is checked with one reduction over ``x`` per call (a host sync on CUDA),
+    skipped for ``num_levels = 0`` and under ``torch.compile``.
     """
     _check_levels(num_levels, include_input)
-    freqs = 2.0 ** torch.arange(num_levels, dtype=x.dtype, device=x.device)
+    if layout not in ("coord_major", "freq_interleaved"):
+        raise ValueError(f"layout: expected 'coord_major' or 'freq_interleaved', got {layout!r}")
+    _check_resolution(x, num_levels)
+    dtype = compute_dtype(x.dtype)
+    inputs = x.to(dtype)
+    # Exact powers of two (ldexp), so 2^k x is exact too.
+    freqs = torch.ldexp(
+        torch.ones(num_levels, dtype=dtype, device=x.device),
+        torch.arange(num_levels, device=x.device),
+    )
     if layout == "coord_major":
-        scaled = (x.unsqueeze(-1) * freqs).flatten(-2)  # (*, D * L), index d * L + k
+        scaled = (inputs.unsqueeze(-1) * freqs).flatten(-2)  # (*, D * L), index d * L + k
         parts = [scaled.sin(), scaled.cos()]
     else:
-        scaled = freqs.unsqueeze(-1) * x.unsqueeze(-2)  # (*, L, D)
+        scaled = freqs.unsqueeze(-1) * inputs.unsqueeze(-2)  # (*, L, D)
         parts = [torch.stack([scaled.sin(), scaled.cos()], dim=-2).flatten(-3)]
-    return torch.cat([x, *parts] if include_input else parts, dim=-1)
+    out = torch.cat([inputs, *parts] if include_input else parts, dim=-1)
+    return out.to(x.dtype)
 
 
 class PositionalEncoding(nn.Module):

@@ -20,12 +20,23 @@ from torch import Tensor
 
 from dego._typing import typechecked
 
+try:
+    from torch.compiler import is_compiling as _is_compiling
+except ImportError:  # torch < 2.3
+    from torch._dynamo import is_compiling as _is_compiling
+
 QUATERNION_EPS = 1e-12
 """Norms below this are treated as zero when normalising quaternions."""
 
 
 def _normalize(quats: Tensor, eps: float = QUATERNION_EPS) -> Tensor:
-    return quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(eps)
+    """``q / max(|q|, eps)``, with ``|q|`` computed from ``q / max_k |q_k|`` so that it
+    neither overflows (``|q| > 1.8e19`` in float32) nor underflows; finite for ``q = 0``."""
+    largest = quats.abs().amax(-1, keepdim=True)
+    scaled = quats / torch.where(largest > 0, largest, torch.ones_like(largest))
+    norm = torch.linalg.vector_norm(scaled, dim=-1, keepdim=True)  # in [1, 2], or 0 for q = 0
+    # the eps clamp: a (near-)zero quaternion maps to q / eps (0 for q = 0), never 0 / 0
+    return torch.where(norm * largest >= eps, scaled / norm.clamp_min(1), quats / eps)
 
 
 def _rotation_matrices(quats: Tensor) -> Tensor:
@@ -51,11 +62,27 @@ def _gram_of_scaled_rotation(quats: Tensor, column_scales: Tensor) -> Tensor:
 # internal callers use the private versions above so that checks are not paid per call.
 
 
+def _check_positive_scales(scales: Tensor) -> None:
+    """``ValueError`` naming ``scales`` unless every value is > 0 (NaN fails too)."""
+    bad = ~(scales > 0)
+    if bool(bad.any()):
+        raise ValueError(
+            f"scales: {int(bad.sum())} of {scales.numel()} values are not positive (e.g. "
+            f"{scales[bad][0].item():.6g}); precisions need 1/s^2 of positive standard "
+            "deviations"
+        )
+
+
 @typechecked
 def normalize_quaternions(
     quats: Float[Tensor, "*batch 4"], eps: float = QUATERNION_EPS
 ) -> Float[Tensor, "*batch 4"]:
-    """Scale quaternions ``(*, 4)`` (wxyz) to unit norm; norms below ``eps`` are clamped."""
+    """Scale quaternions ``(*, 4)`` (wxyz) to unit norm: ``q / max(|q|, eps)``.
+
+    Norms below ``eps`` are clamped, so a zero quaternion gives zeros (finite values and
+    gradients, never ``0 / 0``). The norm is taken after dividing by the largest
+    ``|q_k|``, so huge quaternions (``|q| > 1.8e19`` in float32) do not overflow to 0.
+    """
     return _normalize(quats, eps)
 
 
@@ -66,7 +93,9 @@ def quaternions_to_rotation_matrices(
     """Rotation matrices ``(*, 3, 3)`` from (possibly unnormalised) wxyz quaternions ``(*, 4)``.
 
     The result is quadratic in the unit quaternion, so ``q``, ``-q`` and ``lambda * q``
-    (``lambda != 0``) give the same matrix.
+    (``lambda != 0``) give the same matrix. A zero quaternion encodes no rotation; it
+    gives the identity (finite, through the ``eps`` clamp of :func:`normalize_quaternions`);
+    :meth:`GaussianSet.check_values` and :func:`dego.voxelize` reject it.
     """
     return _rotation_matrices(quats)
 
@@ -86,8 +115,12 @@ def build_precisions(
     """Inverse covariances ``R diag(1/s^2) R^T`` ``(*, 3, 3)``, computed in closed form.
 
     No matrix inversion: accurate and cheap even for very anisotropic Gaussians.
-    Scales must be positive.
+
+    Raises:
+        ValueError: naming ``scales`` when a scale is <= 0 or NaN (``1/s^2`` would be
+            infinite or NaN).
     """
+    _check_positive_scales(scales)
     return _gram_of_scaled_rotation(quats, scales.reciprocal())
 
 
@@ -451,7 +484,14 @@ class GaussianSet:
         return _gram_of_scaled_rotation(self.quats, self.scales)
 
     def precisions(self) -> Float[Tensor, "*batch N 3 3"]:
-        """Inverse covariances ``R diag(1/s^2) R^T``, ``(*batch, N, 3, 3)`` (no inversion)."""
+        """Inverse covariances ``R diag(1/s^2) R^T``, ``(*batch, N, 3, 3)`` (no inversion).
+
+        Needs positive scales: a scale <= 0 (or NaN) raises ``ValueError`` naming
+        ``scales`` in eager mode (one host sync per call); under ``torch.compile`` the
+        check is skipped and such a scale gives non-finite entries.
+        """
+        if not _is_compiling():
+            _check_positive_scales(self.scales)
         return _gram_of_scaled_rotation(self.quats, self.scales.reciprocal())
 
     # -- tensor plumbing --------------------------------------------------------------

@@ -4,25 +4,49 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+import numbers
+from collections.abc import Iterable, Sequence
 
 import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from dego._policy import check_memory, compute_dtype
 from dego._typing import typechecked
 
 _WHOLE_VOXEL_TOLERANCE = 1e-6
+# Above 2**53 voxels an axis count is no longer exact in float64.
+_MAX_VOXELS_PER_AXIS = 2.0**53
+# Float indices are clamped to +-2**62 before the int64 cast (which is undefined for
+# NaN, inf and values beyond int64); such indices stay far outside any grid.
+_INDEX_LIMIT = 2.0**62
 
 Triple = tuple[float, float, float]
 
 
 def _as_triple(name: str, value: float | Sequence[float]) -> Triple:
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        return (float(value),) * 3
-    values = tuple(float(v) for v in value)
-    if len(values) != 3:
-        raise ValueError(f"{name}: expected 3 values (x, y, z), got {len(values)}")
+    """``value`` (one number or three) as three finite floats; errors name ``name``."""
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        values: tuple[float, ...] = (float(value),) * 3
+    elif isinstance(value, (str, bytes, bool)) or not isinstance(value, Iterable):
+        raise TypeError(
+            f"{name}: expected a number or 3 numbers (x, y, z), got {type(value).__name__}"
+        )
+    else:
+        try:
+            items = list(value)
+        except TypeError:  # e.g. a 0-d tensor
+            raise TypeError(
+                f"{name}: expected a number or 3 numbers (x, y, z), got {value!r}"
+            ) from None
+        if len(items) != 3:
+            raise ValueError(f"{name}: expected 3 values (x, y, z), got {len(items)}")
+        try:
+            if any(isinstance(v, (str, bytes, bool)) for v in items):
+                raise TypeError
+            values = tuple(float(v) for v in items)
+        except (TypeError, ValueError):
+            raise TypeError(f"{name}: expected 3 numbers (x, y, z), got {items!r}") from None
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"{name}: values must be finite, got {values}")
     return values  # type: ignore[return-value]
@@ -36,7 +60,12 @@ class VoxelGrid:
         lower: ``(x, y, z)`` of the grid's minimum corner, metres.
         upper: ``(x, y, z)`` of the maximum corner, metres; strictly above ``lower``.
         voxel_size: edge length in metres, one value or one per axis; each extent must
-            be a whole number of voxels (within 1e-6 voxel).
+            be a whole number of voxels (within 1e-6 voxel), at least 1 and at most 2**53.
+
+    Each argument is one number (used on all three axes) or three. Non-numbers raise
+    ``TypeError``; NaN or infinite values, a wrong count, ``voxel_size <= 0``,
+    ``lower >= upper`` or an extent that is not a whole number of voxels raise
+    ``ValueError`` naming the argument.
 
     Voxel ``(i, j, k)`` covers ``lower + [i, i+1) * voxel_size`` (per axis) and its
     centre is ``lower + (index + 0.5) * voxel_size``.
@@ -63,6 +92,15 @@ class VoxelGrid:
             raise ValueError(f"lower must be < upper on every axis, got lower={lo}, upper={hi}")
         for axis, a, b, s in zip("xyz", lo, hi, size, strict=True):
             count = (b - a) / s
+            if not math.isfinite(count) or count > _MAX_VOXELS_PER_AXIS:
+                raise ValueError(
+                    f"voxel_size: the {axis} extent {b - a:g} m holds {count:.6g} voxels of "
+                    f"{s:g} m; at most 2**53 per axis"
+                )
+            if round(count) < 1:
+                raise ValueError(
+                    f"voxel_size: the {axis} extent {b - a:g} m is less than one {s:g} m voxel"
+                )
             if abs(count - round(count)) > _WHOLE_VOXEL_TOLERANCE:
                 raise ValueError(
                     f"voxel_size: the {axis} extent {b - a:g} m is not a whole number of "
@@ -98,7 +136,9 @@ class VoxelGrid:
     ) -> tuple[Tensor, Tensor]:
         """``lower`` and ``voxel_size`` as ``(3,)`` tensors matching ``like`` (or dtype/device)."""
         if like is not None:
-            dtype = like.dtype if like.is_floating_point() else torch.get_default_dtype()
+            # float16 / bfloat16 points are compared in float32 (5.4 is 5.3984 in float16).
+            floating = like.is_floating_point()
+            dtype = compute_dtype(like.dtype) if floating else torch.get_default_dtype()
             device = like.device
         kw = {"dtype": dtype or torch.get_default_dtype(), "device": device}
         return torch.tensor(self.lower, **kw), torch.tensor(self.voxel_size, **kw)
@@ -106,23 +146,37 @@ class VoxelGrid:
     def centers(
         self, *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
     ) -> Float[Tensor, "X Y Z 3"]:
-        """World coordinates of every voxel centre, ``(X, Y, Z, 3)``, computed in float64."""
+        """World coordinates of every voxel centre, ``(X, Y, Z, 3)``, computed in float64.
+
+        The size (a float64 grid plus the result) goes through dego's memory guard first.
+        """
+        out_dtype = dtype or torch.get_default_dtype()
+        itemsize = torch.empty((), dtype=out_dtype).element_size()
+        check_memory(
+            "VoxelGrid.centers",
+            float(self.num_voxels) * 3 * (8 + itemsize),
+            f"{' x '.join(map(str, self.shape))} voxels x 3 coordinates, float64 and {out_dtype}",
+        )
         axes = [
             torch.arange(n, dtype=torch.float64, device=device).add_(0.5).mul_(s).add_(a)
             for n, s, a in zip(self.shape, self.voxel_size, self.lower, strict=True)
         ]
         grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
-        return grid.to(dtype or torch.get_default_dtype())
+        return grid.to(out_dtype)
 
     @typechecked
     def world_to_index(self, points: Float[Tensor, "*batch 3"]) -> Int[Tensor, "*batch 3"]:
         """Integer voxel indices ``floor((p - lower) / voxel_size)``, ``(*, 3)`` int64.
 
         Points outside the grid give out-of-range indices; use :meth:`contains` or
-        :meth:`contains_index` to mask them.
+        :meth:`contains_index` to mask them. So that the int64 cast is always defined,
+        indices are clamped to ``[-2**62, 2**62]`` (still outside any grid), and a NaN
+        coordinate gives index -1 (outside; :meth:`contains` is False for it too).
         """
         lower, size = self._tensors(points)
-        return torch.floor((points - lower) / size).long()
+        index = torch.floor((points.to(lower.dtype) - lower) / size)
+        index = torch.nan_to_num(index, nan=-1.0).clamp(-_INDEX_LIMIT, _INDEX_LIMIT)
+        return index.long()
 
     @typechecked
     def index_to_world(
@@ -137,6 +191,7 @@ class VoxelGrid:
         """Whether each point lies inside the half-open box ``[lower, upper)``."""
         lower, _ = self._tensors(points)
         upper = torch.tensor(self.upper, dtype=lower.dtype, device=lower.device)
+        points = points.to(lower.dtype)
         return ((points >= lower) & (points < upper)).all(dim=-1)
 
     @typechecked

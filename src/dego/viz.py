@@ -10,6 +10,12 @@ pyplot: nothing opens a window and the global backend is left alone. Save them w
 :func:`save_figure`. Every function accepts torch tensors (CPU or GPU; moved to the CPU
 for drawing) or numpy arrays.
 
+Label arguments take any integer dtype (uint8 as Occ3D ships them, int8 ... int64; the
+pictures do not depend on it). Values outside [0, 17], such as -1 or 255, raise a
+``ValueError`` naming the argument and the range found; bool and floating labels raise a
+``TypeError`` (jaxtyping's ``TypeCheckError``) naming the argument. Empty grids and
+batches give empty results.
+
 Orientation (ego frame, x forward, y left, z up): BEV pictures put +x up and +y to the
 left, as a map seen from above with the ego driving up the page; the 3D view looks
 forward from behind and above the ego by default.

@@ -3,8 +3,14 @@
 Each Gaussian is evaluated only at the voxel centres of its neighbourhood: the exact
 axis-aligned box of its ``cutoff_sigma`` ellipsoid (``"ellipsoid"``), or the official
 fixed ``(2 nbh + 1)^3`` cube around its voxel (``"cube"``). (Gaussian, voxel) pairs are
-generated with ``repeat_interleave`` over per-Gaussian box sizes, a bounded number at a
-time, and reduced into the grid with ``index_add_``.
+generated a bounded number at a time (``searchsorted`` over the running pair count, so a
+chunk may split a Gaussian's box) and reduced into the grid with ``index_add_``.
+
+Input policy (see :mod:`dego._policy`): non-finite values, scales <= 0, zero-norm
+quaternions and opacities outside [0, 1] raise ``ValueError`` naming the field; box
+extents are clamped to the grid in floating point before any integer conversion; the
+output and chunk sizes are checked against dego's memory limit before allocating;
+float16 / bfloat16 inputs are computed in float32.
 """
 
 from __future__ import annotations
@@ -18,9 +24,10 @@ from jaxtyping import Float, Int
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
+from dego._policy import check_dtype, check_finite, check_memory, compute_dtype
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
-from dego.gaussians import GaussianSet, _gram_of_scaled_rotation
+from dego.gaussians import QUATERNION_EPS, GaussianSet, _gram_of_scaled_rotation, _rotation_matrices
 from dego.grid import VoxelGrid
 
 Mode = Literal["additive", "probabilistic"]
@@ -31,6 +38,18 @@ _TINY_WEIGHT = 1e-30
 # the skipped total per voxel is below (2 nbh + 1)^3 * 1e-10 (1.3e-7 for nbh = 5) times the
 # largest |opacity| or |feature|.
 _NEGLIGIBLE_QUADRATIC = 2 * 23.026
+
+
+def _scale_floor(dtype: torch.dtype) -> float:
+    """Smallest scale used in the kernel: ``finfo.tiny ** 0.25`` (1.1e-10 m in float32,
+    1.2e-77 m in float64), so ``1/s^2`` and its products with offsets stay finite."""
+    return torch.finfo(dtype).tiny ** 0.25
+
+
+def _log_normaliser_bound(dtype: torch.dtype) -> float:
+    """``|log|`` bound of the mixture normaliser: ``0.5 log(finfo.max)`` (44.4 in float32,
+    354.9 in float64), so probabilistic weights and their sums never overflow."""
+    return 0.5 * math.log(torch.finfo(dtype).max)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,66 +110,161 @@ class VoxelizerConfig:
             raise ValueError(
                 f"neighborhood: expected 'ellipsoid' or 'cube', got {self.neighborhood!r}"
             )
-        if not (isinstance(self.cutoff_sigma, int | float) and self.cutoff_sigma > 0):
-            raise ValueError(f"cutoff_sigma: expected a positive number, got {self.cutoff_sigma!r}")
+        k = self.cutoff_sigma
+        if isinstance(k, bool) or not isinstance(k, int | float) or not k > 0:  # NaN fails
+            raise ValueError(
+                f"cutoff_sigma: expected a positive number (inf: the whole grid), got {k!r}"
+            )
         if self.neighborhood == "cube":
             if self.nbh is None:
                 raise ValueError("nbh: required with neighborhood='cube' (official: 4 or 5)")
             if not isinstance(self.nbh, int) or isinstance(self.nbh, bool) or self.nbh < 0:
                 raise ValueError(f"nbh: expected an int >= 0, got {self.nbh!r}")
-        if not isinstance(self.chunk_size, int) or self.chunk_size < 1:
+        if (
+            isinstance(self.chunk_size, bool)
+            or not isinstance(self.chunk_size, int)
+            or self.chunk_size < 1
+        ):
             raise ValueError(f"chunk_size: expected a positive int, got {self.chunk_size!r}")
 
 
+def _check_values(fields: dict[str, Tensor]) -> None:
+    """Raise ``ValueError`` naming the field on non-finite values, scales <= 0, zero-norm
+    quaternions or opacities outside [0, 1]; one host sync when everything is valid."""
+    scales, quats, opacities = fields["scales"], fields["quats"], fields["opacities"]
+    outside = (opacities < 0) | (opacities > 1)
+    flags = [(~torch.isfinite(t)).sum() for t in fields.values()]
+    flags += [
+        (scales <= 0).sum(),
+        (torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS).sum(),
+        outside.sum(),
+    ]
+    *non_finite, non_positive, zero_norm, out_of_range = torch.stack(flags).tolist()
+    for (name, value), count in zip(fields.items(), non_finite, strict=True):
+        if count:
+            check_finite(name, value)
+    if non_positive:
+        message = (
+            f"scales: {non_positive} of {scales.numel()} values are <= 0 (e.g. "
+            f"{scales[scales <= 0][0].item():.6g}); voxelize needs positive standard "
+            "deviations (its precisions use 1/s^2)"
+        )
+        if bool((scales < 0).all()):
+            message += (
+                "; every value is negative, which looks like log-scales: use "
+                'GaussianSet.from_tensors(..., scale_space="log")'
+            )
+        raise ValueError(message)
+    if zero_norm:
+        raise ValueError(
+            f"quats: {zero_norm} of {quats.shape[:-1].numel()} quaternions have zero norm "
+            f"(<= {QUATERNION_EPS:g}) and encode no rotation"
+        )
+    if out_of_range:
+        message = (
+            f"opacities: {out_of_range} of {opacities.numel()} values lie outside [0, 1] "
+            f"(e.g. {opacities[outside][0].item():.6g})"
+        )
+        if out_of_range == opacities.numel():
+            message += (
+                "; every value lies outside [0, 1], which looks like logits: use "
+                'GaussianSet.from_tensors(..., opacity_space="logit")'
+            )
+        raise ValueError(message)
+
+
+def _check_size(
+    b: int,
+    grid: VoxelGrid,
+    channels: int,
+    dtype: torch.dtype,
+    out_dtype: torch.dtype,
+    chunk: int,
+    per_chunk_element: int,
+    retained: int,
+) -> None:
+    """:func:`check_memory` on the output grids, one chunk's buffers and (under autograd)
+    the per-pair indices kept for backward, before any of them is allocated."""
+    x, y, z = grid.shape
+    voxels = b * x * y * z
+    nbytes = voxels * (channels + 2) * dtype.itemsize + chunk * per_chunk_element + retained
+    if out_dtype != dtype:  # the cast back to the input dtype
+        nbytes += voxels * (channels + 1) * out_dtype.itemsize
+    check_memory(
+        "voxelize",
+        nbytes,
+        f"B = {b} grids of {x} x {y} x {z} voxels x ({channels} + 2) channels in {dtype}, "
+        f"chunks of {chunk} (Gaussian, voxel) pairs",
+    )
+
+
 def _ellipsoid_boxes(
-    gaussians: GaussianSet, grid: VoxelGrid, cutoff_sigma: float
+    means: Tensor,  # (M, 3)
+    rotations: Tensor,  # (M, 3, 3)
+    scales: Tensor,  # (M, 3)
+    grid: VoxelGrid,
+    cutoff_sigma: float,
 ) -> tuple[Tensor, Tensor]:
     """Inclusive per-axis voxel index ranges ``(M, 3)`` low / high of the voxels whose centres
     lie in the axis-aligned box of each Gaussian's ``cutoff_sigma`` ellipsoid, clipped to the
-    grid (empty where high < low)."""
-    means = gaussians.means.detach().reshape(-1, 3)
-    lower = torch.tensor(grid.lower, dtype=means.dtype, device=means.device)
-    size = torch.tensor(grid.voxel_size, dtype=means.dtype, device=means.device)
-    shape = torch.tensor(grid.shape, device=means.device)
-    position = (means - lower) / size  # in voxel units; centre of voxel i is at i + 0.5
-    # sqrt(Sigma_jj) = |row j of R diag(s)|
-    scaled_rotation = gaussians.rotation_matrices().detach() * gaussians.scales.detach().unsqueeze(
-        -2
-    )
-    std = scaled_rotation.square().sum(-1).sqrt().reshape(-1, 3)
-    half = cutoff_sigma * std / size
-    # voxel i is inside iff |i + 0.5 - position| <= half
-    low = torch.ceil(position - half - 0.5).long()
-    high = torch.floor(position + half - 0.5).long()
-    return low.clamp(min=0), torch.minimum(high, shape - 1)
+    grid (empty where high < low).
+
+    Computed in float64 and clamped to ``[-1, shape]`` in floating point before the integer
+    conversion, so huge scales, huge ``cutoff_sigma`` (``inf``: the whole grid) or far
+    means never overflow int64.
+    """
+    device = means.device
+    lower = torch.tensor(grid.lower, dtype=torch.float64, device=device)
+    size = torch.tensor(grid.voxel_size, dtype=torch.float64, device=device)
+    top = torch.tensor(grid.shape, dtype=torch.float64, device=device) - 1
+    if math.isinf(cutoff_sigma):
+        low = torch.zeros_like(means, dtype=torch.float64)
+        high = top.expand_as(low)
+    else:
+        position = (means.double() - lower) / size  # voxel units; centre of voxel i: i + 0.5
+        # sqrt(Sigma_jj) = |row j of R diag(s)| (inf where it overflows: the whole axis)
+        std = (rotations.double() * scales.double().unsqueeze(-2)).square().sum(-1).sqrt()
+        half = cutoff_sigma * std / size
+        # voxel i is inside iff |i + 0.5 - position| <= half; NaN (inf - inf) -> whole axis
+        low = torch.ceil(position - half - 0.5)
+        high = torch.floor(position + half - 0.5)
+        low = torch.where(low.isnan(), 0.0, low)
+        high = torch.where(high.isnan(), top, high)
+    low = torch.minimum(low.clamp_min(0), top + 1)
+    high = torch.minimum(high.clamp_min(-1), top)
+    return low.long(), high.long()
 
 
 def _pair_quadratic(
     means: Tensor,  # (M, 3)
-    precisions: Tensor,  # (M, 6): xx, yy, zz, xy, xz, yz
+    whitening: Tensor,  # (M, 9): diag(1/s) R^T, row-major
     owner: Tensor,  # (P,) Gaussian of each pair
     centres: Tensor,  # (P, 3) voxel centre of each pair
 ) -> Tensor:
-    """Per-pair Mahalanobis quadratic ``d^T P d`` ``(P,)`` from the 6 unique entries."""
+    """Per-pair Mahalanobis quadratic ``|diag(1/s) R^T d|^2`` ``(P,)``.
+
+    A sum of squares: non-negative and free of the cancellation of ``d^T P d`` for
+    needle-like Gaussians. Whitened offsets are clamped to ``+-sqrt(max) / 2`` (NaN from
+    overflowing products counts as far), so the quadratic (then g = 0) and every gradient
+    stay finite, whatever the scales and means.
+    """
     d = centres - means[owner]
-    p = precisions[owner]
-    dx, dy, dz = d.unbind(-1)
-    return (
-        p[:, 0] * dx * dx
-        + p[:, 1] * dy * dy
-        + p[:, 2] * dz * dz
-        + 2 * (p[:, 3] * dx * dy + p[:, 4] * dx * dz + p[:, 5] * dy * dz)
-    )
+    u = (whitening[owner].view(-1, 3, 3) * d.unsqueeze(-2)).sum(-1)  # (P, 3)
+    far = math.sqrt(torch.finfo(u.dtype).max) / 2  # 3 far^2 and 2 far stay finite
+    u = torch.nan_to_num(u, nan=far).clamp(-far, far)
+    return u.square().sum(-1)
 
 
 def _kernel_terms(
     quadratic: Tensor,  # (P,)
     opacity: Tensor,  # (P,) opacity of each pair's Gaussian
     features: Tensor,  # (P, C) features of each pair's Gaussian
-    log_normaliser: Tensor,  # (P,) log of (2 pi)^(-3/2) sqrt(det P) of each pair's Gaussian
+    log_normaliser: Tensor,  # (P,) clamped log of (2 pi)^(-3/2) sqrt(det P) of each pair
     probabilistic: bool,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per-pair density term, feature term and (probabilistic) mixture weight."""
+    # d^T P d >= 0: rounding below 0 is clamped, NaN (inf - inf: a far pair) counts as far
+    quadratic = torch.where(quadratic.isnan(), math.inf, quadratic.clamp_min(0))
     g = torch.exp(-0.5 * quadratic)
     if not probabilistic:
         return opacity * g, g.unsqueeze(-1) * features, g.new_zeros(0)
@@ -162,7 +276,7 @@ def _kernel_terms(
 
 def _pair_terms(
     means: Tensor,
-    precisions: Tensor,
+    whitening: Tensor,
     opacities: Tensor,  # (M,)
     features: Tensor,  # (M, C)
     owner: Tensor,
@@ -171,24 +285,10 @@ def _pair_terms(
     probabilistic: bool,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_kernel_terms` of the (Gaussian ``owner``, voxel centre) pairs."""
-    quadratic = _pair_quadratic(means, precisions, owner, centres)
+    quadratic = _pair_quadratic(means, whitening, owner, centres)
     return _kernel_terms(
         quadratic, opacities[owner], features[owner], log_normaliser[owner], probabilistic
     )
-
-
-def _chunks(counts: Tensor, chunk_size: int) -> list[tuple[int, int]]:
-    """Consecutive Gaussian ranges whose pair counts sum to at most ``chunk_size``
-    (a single Gaussian with more pairs forms its own chunk)."""
-    ends = torch.cumsum(counts, 0).tolist()
-    ranges, start, base = [], 0, 0
-    for i, end in enumerate(ends):
-        if end - base > chunk_size and i > start:
-            ranges.append((start, i))
-            start, base = i, ends[i - 1]
-    if ends:
-        ranges.append((start, len(ends)))
-    return ranges
 
 
 @typechecked
@@ -206,9 +306,10 @@ def voxelize(
     """Splat ``(B, N)`` Gaussians into ``grid``: ``g_i(x) = exp(-0.5 d^T P_i d)`` at voxel centres.
 
     Args:
-        gaussians: batch shape ``(B,)``.
-        grid: the voxel grid.
-        features: ``(B, N, C)``; defaults to ``gaussians.features`` (none: C = 0).
+        gaussians: batch shape ``(B,)`` (B = 0 and N = 0 give empty / zero grids).
+        grid: the voxel grid, ``(X, Y, Z)`` voxels.
+        features: ``(B, N, C)`` in the Gaussians' dtype; defaults to ``gaussians.features``
+            (none: C = 0).
         mode: ``"additive"`` (official DeGO / GaussianFlowOcc): density =
             clamp(sum o_i g_i, 0, 1), features = sum g_i f_i. ``"probabilistic"``
             (GaussianFormer-2 with opacity): density = 1 - prod(1 - o_i g_i) (in log
@@ -219,12 +320,25 @@ def voxelize(
             voxel with Mahalanobis distance <= k is missed, rotated Gaussians included.
             ``"cube"``: the official fixed ``(2 nbh + 1)^3`` cube around
             ``floor((mu - lower) / voxel)``.
-        cutoff_sigma: k of the ellipsoid neighbourhood.
+        cutoff_sigma: k of the ellipsoid neighbourhood, > 0; ``math.inf``: the whole grid.
         nbh: half-width of the cube neighbourhood (official: 4; its evaluation uses 5).
         chunk_size: (Gaussian, voxel) pairs evaluated at once; bounds peak memory
-            (about ``chunk_size * (40 + 8 C)`` bytes in float32), whatever N is.
+            (about ``chunk_size * (56 + (26 + 2 C) * 4)`` bytes in float32), whatever N
+            and the box sizes are.
 
-    Gaussians partly or wholly outside the grid contribute where they overlap it.
+    Returns:
+        ``VoxelOutput`` with ``density (B, X, Y, Z)`` in [0, 1] and ``features
+        (B, X, Y, Z, C)``, in the input dtype (float16 / bfloat16 are computed in float32).
+
+    Raises:
+        ValueError: naming the field, for NaN / inf in any Gaussian field or the features,
+            scales <= 0, zero-norm quaternions or opacities outside [0, 1]; a bad option;
+            or when the output grids and chunk buffers would exceed dego's memory limit
+            (:func:`dego.set_memory_limit`).
+        TypeError: ``features`` of another dtype than the Gaussians.
+
+    Gaussians partly or wholly outside the grid contribute where they overlap it; extreme
+    but finite scales, means and ``cutoff_sigma`` never overflow the box arithmetic.
     Differentiable w.r.t. means, quats, scales, opacities and features.
     """
     config = VoxelizerConfig(mode, neighborhood, cutoff_sigma, nbh, chunk_size)
@@ -240,70 +354,134 @@ def _voxelize(
             "flatten extra axes with GaussianSet.flatten_batch()"
         )
     b, n = gaussians.batch_shape[0], gaussians.num_gaussians
+    out_dtype, device = gaussians.dtype, gaussians.device
     features = gaussians.features if features is None else features
     if features is None:
         features = gaussians.means.new_zeros(b, n, 0)
-    if features.shape[:2] != (b, n) or features.dtype != gaussians.dtype:
-        raise ValueError(
-            f"features: expected ({b}, {n}, C) {gaussians.dtype}, got "
-            f"{tuple(features.shape)} {features.dtype}"
-        )
-    dtype, device = gaussians.dtype, gaussians.device
-    x, y, z = grid.shape
-    channels = features.shape[-1]
-    probabilistic = config.mode == "probabilistic"
+    if tuple(features.shape[:2]) != (b, n):
+        raise ValueError(f"features: expected shape ({b}, {n}, C), got {tuple(features.shape)}")
+    check_dtype("features", features, out_dtype, "gaussians")
+    if features.device != device:
+        raise ValueError(f"features: on device {features.device} but gaussians are on {device}")
+    dtype = compute_dtype(out_dtype)  # float16 / bfloat16 -> float32
+    fields = {
+        "means": gaussians.means,
+        "quats": gaussians.quats,
+        "scales": gaussians.scales,
+        "opacities": gaussians.opacities,
+        "features": features,
+    }
+    fields = {name: value.to(dtype) for name, value in fields.items()}
+    _check_values(fields)
 
-    precision = _gram_of_scaled_rotation(gaussians.quats, gaussians.scales.reciprocal())
-    precision = precision.reshape(-1, 3, 3)
-    precision6 = torch.stack(
-        [
-            precision[:, 0, 0],
-            precision[:, 1, 1],
-            precision[:, 2, 2],
-            precision[:, 0, 1],
-            precision[:, 0, 2],
-            precision[:, 1, 2],
-        ],
-        -1,
-    )
-    log_normaliser = -1.5 * math.log(2 * math.pi) - gaussians.scales.log().sum(-1).reshape(-1)
-    means = gaussians.means.reshape(-1, 3)
-    opacities = gaussians.opacities.reshape(-1)
-    flat_features = features.reshape(b * n, channels)
-    lower = torch.tensor(grid.lower, dtype=dtype, device=device)
-    size = torch.tensor(grid.voxel_size, dtype=dtype, device=device)
+    m, channels = b * n, features.shape[-1]
+    means = fields["means"].reshape(m, 3)
+    quats = fields["quats"].reshape(m, 4)
+    scales = fields["scales"].reshape(m, 3).clamp_min(_scale_floor(dtype))
+    opacities = fields["opacities"].reshape(m)
+    flat_features = fields["features"].reshape(m, channels)
+    bound = _log_normaliser_bound(dtype)
+    log_normaliser = (-1.5 * math.log(2 * math.pi) - scales.log().sum(-1)).clamp(-bound, bound)
 
     if config.neighborhood == "cube":
-        return _voxelize_cube(gaussians, grid, flat_features, precision6, log_normaliser, config)
-    low, high = _ellipsoid_boxes(gaussians, grid, config.cutoff_sigma)
-    extent = (high - low + 1).clamp(min=0)  # (M, 3)
-    counts = extent.prod(-1)
-    num_voxels = b * x * y * z
-    density = torch.zeros(num_voxels, dtype=dtype, device=device)
-    accumulated = torch.zeros(num_voxels, channels, dtype=dtype, device=device)
-    weights = torch.zeros(num_voxels if probabilistic else 0, dtype=dtype, device=device)
-    grad_needed = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (means, precision6, opacities, flat_features)
-    )
-    for start, stop in _chunks(counts, config.chunk_size):
-        with torch.no_grad():
-            owner = torch.arange(start, stop, device=device).repeat_interleave(counts[start:stop])
-            first = torch.cumsum(counts[start:stop], 0) - counts[start:stop]
-            local = torch.arange(owner.shape[0], device=device) - first.repeat_interleave(
-                counts[start:stop]
-            )
-            ey, ez = extent[owner, 1], extent[owner, 2]
-            index = low[owner] + torch.stack(
-                [local // (ey * ez), (local // ez) % ey, local % ez], -1
-            )
-            batch = owner // n if n else owner
-            voxel = ((batch * x + index[:, 0]) * y + index[:, 1]) * z + index[:, 2]
-            centres = lower + (index.to(dtype) + 0.5) * size
-        args = (
+        precision = _gram_of_scaled_rotation(quats, scales.reciprocal())
+        rows, cols = (0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)  # xx, yy, zz, xy, xz, yz
+        precision6 = precision[:, rows, cols]
+        out = _voxelize_cube(
+            (b, n),
+            grid,
             means,
             precision6,
             opacities,
             flat_features,
+            log_normaliser,
+            config,
+            out_dtype,
+        )
+    else:
+        rotations = _rotation_matrices(quats)
+        whitening = (rotations / scales.unsqueeze(-2)).transpose(-1, -2).reshape(m, 9)
+        out = _voxelize_ellipsoid(
+            (b, n),
+            grid,
+            means,
+            rotations,
+            scales,
+            whitening,
+            opacities,
+            flat_features,
+            log_normaliser,
+            config,
+            out_dtype,
+        )
+    if out_dtype == dtype:
+        return out
+    return VoxelOutput(density=out.density.to(out_dtype), features=out.features.to(out_dtype))
+
+
+def _voxelize_ellipsoid(
+    bn: tuple[int, int],
+    grid: VoxelGrid,
+    means: Tensor,  # (M, 3)
+    rotations: Tensor,  # (M, 3, 3)
+    scales: Tensor,  # (M, 3), floored
+    whitening: Tensor,  # (M, 9)
+    opacities: Tensor,  # (M,)
+    features: Tensor,  # (M, C)
+    log_normaliser: Tensor,  # (M,)
+    config: VoxelizerConfig,
+    out_dtype: torch.dtype,
+) -> VoxelOutput:
+    """Exact ellipsoid boxes: pairs enumerated in fixed-size ranges of the running count."""
+    (b, n), (x, y, z) = bn, grid.shape
+    dtype, device = means.dtype, means.device
+    channels = features.shape[-1]
+    probabilistic = config.mode == "probabilistic"
+    grad_needed = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means, whitening, opacities, features, log_normaliser)
+    )
+    with torch.no_grad():
+        low, high = _ellipsoid_boxes(
+            means.detach(), rotations.detach(), scales.detach(), grid, config.cutoff_sigma
+        )
+        extent = (high - low + 1).clamp(min=0)  # (M, 3)
+        counts = extent.prod(-1)
+        ends = torch.cumsum(counts, 0)
+    total = int(ends[-1]) if ends.numel() else 0
+    chunk = min(config.chunk_size, total)
+    _check_size(
+        b,
+        grid,
+        channels,
+        dtype,
+        out_dtype,
+        chunk,
+        56 + (26 + 2 * channels) * dtype.itemsize,
+        total * (16 + 3 * dtype.itemsize) if grad_needed else 0,
+    )
+    lower = torch.tensor(grid.lower, dtype=dtype, device=device)
+    size = torch.tensor(grid.voxel_size, dtype=dtype, device=device)
+    num_voxels = b * x * y * z
+    density = torch.zeros(num_voxels, dtype=dtype, device=device)
+    accumulated = torch.zeros(num_voxels, channels, dtype=dtype, device=device)
+    weights = torch.zeros(num_voxels if probabilistic else 0, dtype=dtype, device=device)
+    for first in range(0, total, max(chunk, 1)):  # bounded chunks of pairs
+        with torch.no_grad():
+            pair = torch.arange(first, min(first + chunk, total), device=device)
+            owner = torch.searchsorted(ends, pair, right=True)
+            local = pair - (ends[owner] - counts[owner])
+            ey, ez = extent[owner, 1], extent[owner, 2]
+            index = low[owner] + torch.stack(
+                [local // (ey * ez), (local // ez) % ey, local % ez], -1
+            )
+            batch = owner // n  # n >= 1 whenever there are pairs
+            voxel = ((batch * x + index[:, 0]) * y + index[:, 1]) * z + index[:, 2]
+            centres = lower + (index.to(dtype) + 0.5) * size
+        args = (
+            means,
+            whitening,
+            opacities,
+            features,
             owner,
             centres,
             log_normaliser,
@@ -317,7 +495,6 @@ def _voxelize(
         accumulated.index_add_(0, voxel, terms[1])
         if probabilistic:
             weights.index_add_(0, voxel, terms[2])
-
     return _finish(density, accumulated, weights, probabilistic, (b, x, y, z))
 
 
@@ -329,14 +506,16 @@ def _finish(
     shape: tuple[int, ...],
 ) -> VoxelOutput:
     if probabilistic:
-        density = 1 - torch.exp(density)
+        density = -torch.expm1(density)  # 1 - prod(1 - o g), accurate for small densities
         safe = weights > _TINY_WEIGHT
         accumulated = torch.where(
             safe.unsqueeze(-1), accumulated / weights.clamp_min(_TINY_WEIGHT).unsqueeze(-1), 0.0
         )
     else:
         density = density.clamp(0, 1)
-    return VoxelOutput(density=density.view(*shape), features=accumulated.view(*shape, -1))
+    return VoxelOutput(
+        density=density.view(*shape), features=accumulated.view(*shape, accumulated.shape[-1])
+    )
 
 
 def _cube_quadratics(
@@ -345,18 +524,22 @@ def _cube_quadratics(
     cell: Tensor,  # (n, 3) long, voxel index of each mean (may be off-grid)
     axis_centres: tuple[Tensor, Tensor, Tensor],  # the grid's voxel centres along x, y, z
     r: Tensor,  # (K,) offsets -nbh..nbh
+    reach: tuple[float, float, float],  # (nbh + 1) voxels per axis, metres
 ) -> Tensor:
     """``(n, K, K, K)`` float64 quadratics ``d^T P d`` over each Gaussian's cube.
 
     ``d`` is formed per axis as (the grid's centre) - (mean) in the input dtype, exactly the
     official code's ``d``; the quadratic form is then separable into (n, K) and (n, K, K)
     terms broadcast together, so nothing is gathered per (Gaussian, voxel) pair. Off-grid
-    cube cells get clamped (meaningless) values: the caller drops them.
+    cube cells get clamped (meaningless) values: the caller drops them. ``d`` is clamped
+    to ``+-reach``, which no in-grid cell of the cube exceeds, so far means cannot
+    overflow the products (or their gradients).
     """
     d = []
     for a, centres in enumerate(axis_centres):
         index = (cell[:, a, None] + r).clamp(0, centres.shape[0] - 1)
-        d.append((centres[index] - means[:, a, None]).double())
+        offset = (centres[index] - means[:, a, None]).clamp(-reach[a], reach[a])
+        d.append(offset.double())
     dx, dy, dz = d
     p = precisions.double()
     xy = p[:, 0, None, None] * (dx * dx)[:, :, None] + p[:, 1, None, None] * (dy * dy)[:, None]
@@ -380,9 +563,11 @@ def _cube_pair_terms(
     flat: Tensor,  # (P,) its index into the flattened (n, K, K, K) quadratics
     axis_centres: tuple[Tensor, Tensor, Tensor],
     r: Tensor,
+    reach: tuple[float, float, float],
     probabilistic: bool,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    quadratic = _cube_quadratics(means, precisions, cell, axis_centres, r).flatten()[flat]
+    quadratic = _cube_quadratics(means, precisions, cell, axis_centres, r, reach)
+    quadratic = quadratic.flatten()[flat]
     return _kernel_terms(
         quadratic.to(means.dtype),
         opacities[local],
@@ -393,26 +578,43 @@ def _cube_pair_terms(
 
 
 def _voxelize_cube(
-    gaussians: GaussianSet,
+    bn: tuple[int, int],
     grid: VoxelGrid,
-    features: Tensor,
-    precision6: Tensor,
-    log_normaliser: Tensor,
+    means: Tensor,  # (M, 3)
+    precision6: Tensor,  # (M, 6)
+    opacities: Tensor,  # (M,)
+    features: Tensor,  # (M, C)
+    log_normaliser: Tensor,  # (M,)
     config: VoxelizerConfig,
+    out_dtype: torch.dtype,
 ) -> VoxelOutput:
     """The official fixed-cube neighbourhood: quadratics of all ``(2 nbh + 1)^3`` cells of a
     bounded number of Gaussians at once, negligible and off-grid pairs dropped, the rest
     reduced with ``index_add_``."""
-    b, n = gaussians.batch_shape[0], gaussians.num_gaussians
-    dtype, device = gaussians.dtype, gaussians.device
-    x, y, z = grid.shape
+    (b, n), (x, y, z) = bn, grid.shape
+    assert config.nbh is not None  # VoxelizerConfig requires it for the cube
+    dtype, device = means.dtype, means.device
     channels = features.shape[-1]
     probabilistic = config.mode == "probabilistic"
+    r = torch.arange(-config.nbh, config.nbh + 1, device=device)
+    cube_size = r.shape[0] ** 3
+    per_chunk = max(1, config.chunk_size // cube_size)
+    grad_needed = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means, precision6, opacities, features, log_normaliser)
+    )
+    _check_size(
+        b,
+        grid,
+        channels,
+        dtype,
+        out_dtype,
+        min(per_chunk, b * n) * cube_size,
+        49 + (4 + 2 * channels) * dtype.itemsize,
+        b * n * cube_size * 24 if grad_needed else 0,
+    )
     lower = torch.tensor(grid.lower, dtype=dtype, device=device)
     size = torch.tensor(grid.voxel_size, dtype=dtype, device=device)
     shape = torch.tensor(grid.shape, device=device)
-    r = torch.arange(-config.nbh, config.nbh + 1, device=device)
-    cube_size = r.shape[0] ** 3
     offsets = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
     offsets_flat = (offsets[:, 0] * y + offsets[:, 1]) * z + offsets[:, 2]
     # the same float operations as the grid's own centres (and the official code's)
@@ -420,9 +622,12 @@ def _voxelize_cube(
         lower[a] + (torch.arange(grid.shape[a], device=device, dtype=dtype) + 0.5) * size[a]
         for a in range(3)
     )
-    means, opacities = gaussians.means.reshape(-1, 3), gaussians.opacities.reshape(-1)
+    reach = tuple((config.nbh + 1) * v for v in grid.voxel_size)
     with torch.no_grad():
-        cell = torch.floor((means.detach() - lower) / size).long()  # (M, 3), may be off-grid
+        # home voxel, clamped in floating point to just outside the reach of the cube before
+        # the integer conversion (a cell that far has no in-grid cube cell either way)
+        cell = torch.floor((means.detach() - lower) / size)
+        cell = torch.minimum(cell.clamp_min(-config.nbh - 1), shape + config.nbh).long()
         batch = torch.arange(b * n, device=device) // max(n, 1)
         cell_flat = batch * (x * y * z) + (cell[:, 0] * y + cell[:, 1]) * z + cell[:, 2]
 
@@ -430,15 +635,11 @@ def _voxelize_cube(
     density = torch.zeros(num_voxels, dtype=dtype, device=device)
     accumulated = torch.zeros(num_voxels, channels, dtype=dtype, device=device)
     weights = torch.zeros(num_voxels if probabilistic else 0, dtype=dtype, device=device)
-    grad_needed = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (means, precision6, opacities, features)
-    )
-    per_chunk = max(1, config.chunk_size // cube_size)
-    for start in range(0, b * n, per_chunk):
+    for start in range(0, b * n, per_chunk):  # bounded chunks of Gaussians
         part = slice(start, start + per_chunk)
         with torch.no_grad():
             quadratic = _cube_quadratics(
-                means[part].detach(), precision6[part].detach(), cell[part], axis_centres, r
+                means[part].detach(), precision6[part].detach(), cell[part], axis_centres, r, reach
             )
             axis_ok = [
                 ((cell[part, a, None] + r) >= 0) & ((cell[part, a, None] + r) < shape[a])
@@ -450,7 +651,7 @@ def _voxelize_cube(
                 & axis_ok[2][:, None, None, :]
             )
             # In probabilistic mode a tiny kernel can still carry a large normalised mixture
-            # weight, so only the additive mode skips negligible pairs.
+            # weight, so only the additive mode skips negligible pairs (NaN: far, skipped).
             if not probabilistic:
                 keep &= quadratic < _NEGLIGIBLE_QUADRATIC
             flat = keep.flatten().nonzero().squeeze(1)
@@ -465,6 +666,7 @@ def _voxelize_cube(
                 flat,
                 axis_centres,
                 r,
+                reach,
                 probabilistic,
                 use_reentrant=False,
             )

@@ -122,11 +122,16 @@ class Occ3DLabels:
     ) -> Occ3DLabels:
         """Build from ``(X, Y, Z)`` numpy arrays or tensors, converting dtypes with checks.
 
-        ``semantics`` may have any integer dtype (not bool, not floating) with values in
-        ``0..num_classes-1``; it becomes ``torch.uint8``. Masks may be bool or any integer
-        dtype holding only 0 and 1; they become ``torch.bool``. Tensors keep their device;
-        numpy arrays become CPU tensors (copied only when needed). Raises ``ValueError``
-        naming the argument for a wrong dtype, shape or value.
+        ``semantics`` may have any integer dtype (uint8, int8, int16, int32, int64, ...;
+        the result does not depend on it) with values in ``0..num_classes-1``; it becomes
+        ``torch.uint8``. Masks may be bool or any integer dtype holding only 0 and 1; they
+        become ``torch.bool``. Tensors keep their device; numpy arrays become CPU tensors
+        (copied only when needed).
+
+        Raises:
+            TypeError: bool or floating ``semantics``, floating masks (naming the argument).
+            ValueError: a wrong shape or value (a label outside ``0..num_classes-1``, such
+                as -1 or 255, named with the range found; a mask value other than 0/1).
         """
         _check_num_classes(num_classes)
         return _labels_from_arrays(
@@ -134,6 +139,7 @@ class Occ3DLabels:
             prefix="",
             expected_shape=None,
             num_classes=num_classes,
+            dtype_error=TypeError,
         )
 
     @property
@@ -214,14 +220,26 @@ def _labels_from_arrays(
     prefix: str,
     expected_shape: Shape3 | None,
     num_classes: int,
+    dtype_error: type[Exception] = ValueError,
 ) -> Occ3DLabels:
-    """Validate and convert the three arrays; errors start with ``prefix`` + the array name."""
+    """Validate and convert the three arrays; errors start with ``prefix`` + the array name.
+
+    A wrong dtype raises ``dtype_error``: ``TypeError`` for arrays passed in, ``ValueError``
+    for the arrays of a file (malformed data).
+    """
     for name, value in arrays.items():
+        if not isinstance(value, np.ndarray | Tensor):
+            raise TypeError(
+                f"{prefix}{name}: expected a numpy array or torch.Tensor, got "
+                f"{type(value).__name__}"
+            )
         kind = _dtype_kind(value)
         if name == "semantics" and kind not in "iu":
-            raise ValueError(f"{prefix}semantics: expected integer labels, got dtype {value.dtype}")
+            raise dtype_error(
+                f"{prefix}semantics: expected integer labels, got dtype {value.dtype}"
+            )
         if name != "semantics" and kind not in "biu":
-            raise ValueError(
+            raise dtype_error(
                 f"{prefix}{name}: expected a bool mask or integers 0/1, got dtype {value.dtype}"
             )
         if value.ndim != 3:

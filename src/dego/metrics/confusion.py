@@ -16,13 +16,21 @@ from torch import Tensor
 _SMALL_INTS = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 
 
+def _native(array: np.ndarray) -> np.ndarray:
+    """A contiguous, writable, native-byte-order view or copy that torch can wrap."""
+    if not array.dtype.isnative:
+        array = array.astype(array.dtype.newbyteorder("="))
+    array = np.ascontiguousarray(array)
+    return array if array.flags.writeable else array.copy()
+
+
 def as_label_tensor(name: str, labels: Tensor | np.ndarray) -> Tensor:
     """``labels`` as an integer tensor (numpy converted without copy where possible).
 
     Raises ``TypeError`` naming ``name`` for floating, bool or non-array input.
     """
     if isinstance(labels, np.ndarray):
-        labels = torch.from_numpy(np.ascontiguousarray(labels))
+        labels = torch.from_numpy(_native(labels))
     if not isinstance(labels, Tensor):
         raise TypeError(
             f"{name}: expected a torch.Tensor or numpy array of integer labels, "
@@ -42,7 +50,7 @@ def as_mask_tensor(mask: Tensor | np.ndarray, shape: torch.Size, device: torch.d
     evaluates the wrong voxels; here it is either a valid 0/1 mask or an error.
     """
     if isinstance(mask, np.ndarray):
-        mask = torch.from_numpy(np.ascontiguousarray(mask))
+        mask = torch.from_numpy(_native(mask))
     if not isinstance(mask, Tensor):
         raise TypeError(
             f"mask: expected a bool torch.Tensor or numpy array, got {type(mask).__name__}"
@@ -90,17 +98,28 @@ def confusion_matrix(
     """``(C, C)`` int64 confusion matrix (rows gt, columns pred) over the evaluated voxels.
 
     Args:
-        pred: predicted labels, any shape; values in ``0..C-1``.
+        pred: predicted labels, any shape (an empty batch gives a zero matrix) and any
+            integer dtype (uint8 as Occ3D ships them, int8 ... int64: the counts do not
+            depend on it); values in ``0..C-1``.
         gt: ground-truth labels, same shape; values in ``0..C-1`` or ``ignore_label``.
         mask: optional bool (or 0/1 uint8) mask of the same shape; False voxels are skipped.
         num_classes: C.
-        ignore_label: gt value whose voxels are skipped (``None``: no such value).
+        ignore_label: gt value whose voxels are skipped (``None``: no such value). Any int
+            outside ``0..C-1``: 255 (the default), -1, or a large value.
         removed_classes: gt classes whose voxels are skipped as well (the weakly
             supervised protocol removes 0 ``others`` and 12 ``other_flat``).
 
-    Returns the matrix on ``gt``'s device. Raises ``ValueError`` naming ``pred`` or
-    ``gt`` for out-of-range labels and for shape mismatches.
+    Returns the matrix on ``gt``'s device.
+
+    Raises:
+        TypeError: bool, floating or non-array labels.
+        ValueError: a label out of range (naming ``pred`` or ``gt`` and the value; the
+            ignore label is not a valid prediction), an ``ignore_label`` inside
+            ``0..C-1``, shape or device mismatches.
     """
+    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
+        raise ValueError(f"num_classes: expected an int >= 1, got {num_classes!r}")
+    ignore_label = _check_ignore_label(ignore_label, num_classes)
     pred, gt = as_label_tensor("pred", pred), as_label_tensor("gt", gt)
     if pred.shape != gt.shape:
         raise ValueError(f"pred: shape {tuple(pred.shape)} does not match gt's {tuple(gt.shape)}")
@@ -113,10 +132,23 @@ def confusion_matrix(
     # dominate the cost). Keys of ignored gt are >= C * C and those of masked-out voxels
     # are shifted past every label key; both land beyond the C * C bins that are kept.
     # Voxels of removed gt classes only ever reach those classes' rows, which are zeroed.
-    max_label = num_classes - 1 if ignore_label is None else max(num_classes - 1, ignore_label)
+    # An ignore label that no voxel of gt's dtype can hold (255 in int8, -1 in uint8) is
+    # no ignore label at all; one below 0 or above 255 is first replaced by C, so that
+    # every key stays small and non-negative.
+    info = torch.iinfo(gt.dtype)
+    if ignore_label is not None and not info.min <= ignore_label <= info.max:
+        ignore_label = None
+    direct = ignore_label is None or 0 <= ignore_label <= 255
+    # the largest gt value left in the keys: a class, or the ignore label (direct or as C)
+    max_label = num_classes - 1 if ignore_label is None else num_classes
+    if ignore_label is not None and direct:
+        max_label = max(num_classes - 1, ignore_label)
     span = num_classes * (max_label + 1)
     key_dtype = torch.int16 if 2 * span <= torch.iinfo(torch.int16).max else torch.int64
-    key = torch.add(pred.to(key_dtype), gt.to(key_dtype), alpha=num_classes)
+    gt_key = gt.to(key_dtype)
+    if not direct:
+        gt_key = gt_key.masked_fill(gt == ignore_label, num_classes)
+    key = torch.add(pred.to(key_dtype), gt_key, alpha=num_classes)
     if mask is not None:
         outside = as_mask_tensor(mask, gt.shape, gt.device).logical_not()
         key.add_(outside.to(key_dtype), alpha=span)
@@ -127,6 +159,20 @@ def confusion_matrix(
     if removed_classes:
         counts[list(removed_classes)] = 0
     return counts
+
+
+def _check_ignore_label(ignore_label: object, num_classes: int) -> int | None:
+    """``ignore_label`` as an int outside ``0..num_classes-1`` (or ``None``)."""
+    if ignore_label is None:
+        return None
+    if isinstance(ignore_label, bool) or not isinstance(ignore_label, int | np.integer):
+        raise ValueError(f"ignore_label: expected an int or None, got {ignore_label!r}")
+    ignore_label = int(ignore_label)
+    if 0 <= ignore_label < num_classes:
+        raise ValueError(
+            f"ignore_label: {ignore_label} collides with a class in 0..{num_classes - 1}"
+        )
+    return ignore_label
 
 
 def binary_occupancy_confusion(confusion: Tensor, free_label: int) -> Tensor:

@@ -11,7 +11,11 @@ from torch import Tensor
 
 from dego._typing import typechecked
 from dego.classes import CLASS_GROUPS, CLASS_NAMES, FREE_LABEL, NUM_CLASSES, PROTOCOL_CLASSES
-from dego.metrics.confusion import binary_occupancy_confusion, confusion_matrix
+from dego.metrics.confusion import (
+    _check_ignore_label,
+    binary_occupancy_confusion,
+    confusion_matrix,
+)
 from dego.metrics.counts import CountingMetric
 from dego.metrics.report import OccupancyReport, per_class_iou
 
@@ -30,7 +34,8 @@ class OccupancyMetrics(CountingMetric):
         num_classes: C, the number of labels including free (18 for Occ3D-nuScenes).
             ``"weak"`` is defined on the Occ3D-nuScenes labels and needs C = 18.
         free_label: the empty-space label (17).
-        ignore_label: gt value whose voxels are skipped (255), or ``None``.
+        ignore_label: gt value whose voxels are skipped (255), or ``None``; any int
+            outside ``0..C-1`` (e.g. -1).
         groups: class groups averaged into ``report.group_means``; defaults to the paper's
             InsM / ScnM / HCM for Occ3D-nuScenes labels, none otherwise.
         device: where the state lives (inputs on other devices are reduced where they are
@@ -63,10 +68,7 @@ class OccupancyMetrics(CountingMetric):
             raise ValueError(f"num_classes: expected an int >= 2, got {num_classes!r}")
         if not 0 <= free_label < num_classes:
             raise ValueError(f"free_label: {free_label} must lie in 0..{num_classes - 1}")
-        if ignore_label is not None and 0 <= ignore_label < num_classes:
-            raise ValueError(
-                f"ignore_label: {ignore_label} collides with a class in 0..{num_classes - 1}"
-            )
+        ignore_label = _check_ignore_label(ignore_label, num_classes)
         if protocol == "weak" and (num_classes, free_label) != (NUM_CLASSES, FREE_LABEL):
             raise ValueError(
                 "protocol: 'weak' is defined on the 18 Occ3D-nuScenes labels "
@@ -106,9 +108,16 @@ class OccupancyMetrics(CountingMetric):
         """Add one batch of label grids ``(X, Y, Z)`` or ``(B, X, Y, Z)`` to the state.
 
         Args:
-            pred: predicted labels in ``0..C-1``, any integer dtype.
+            pred: predicted labels in ``0..C-1``, any integer dtype (uint8 as Occ3D ships
+                them, int8 ... int64: the counts do not depend on it), torch or numpy.
+                An empty batch ``(0, X, Y, Z)`` adds nothing.
             gt: ground-truth labels in ``0..C-1`` or ``ignore_label``, same shape.
             mask: optional camera mask, bool (or uint8 holding only 0/1), same shape.
+
+        Raises:
+            TypeError: bool, floating or non-array labels.
+            ValueError: a label out of range (naming ``pred`` or ``gt`` and the value), a
+                bad mask, shape or device mismatches.
         """
         if gt.ndim < 3:
             raise ValueError(

@@ -22,12 +22,14 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from dego._policy import check_finite, check_memory
 from dego._typing import typechecked
 from dego.classes import CLASS_NAMES, FREE_LABEL, NUM_CLASSES
 from dego.gaussians import _rotation_matrices
 from dego.grid import VoxelGrid
+from dego.metrics.confusion import as_label_tensor
 from dego.metrics.counts import CountingMetric
-from dego.raycast import cast_rays, generate_lidar_rays
+from dego.raycast import _cast_bytes, _cast_product, _cast_sizes, generate_lidar_rays
 
 DEFAULT_THRESHOLDS = (1.0, 2.0, 4.0)
 
@@ -164,7 +166,8 @@ class RayIoU(CountingMetric):
         class_ids: the classes averaged into RayIoU (default: every label but free, i.e.
             the 17 classes SparseOcc averages, others and other_flat included).
         grid: the label grids' voxel grid (default Occ3D).
-        rays: ``(R, 3)`` ray directions (default :func:`dego.raycast.generate_lidar_rays`).
+        rays: ``(R, 3)`` ray directions (default :func:`dego.raycast.generate_lidar_rays`),
+            finite and non-zero, of any length; stored as float32 like SparseOcc's.
         device: where the state lives.
 
     State (int64 buffers): ``gt_count (C,)``, ``pred_count (C,)``, ``true_positives
@@ -206,9 +209,20 @@ class RayIoU(CountingMetric):
         self.grid = VoxelGrid.occ3d() if grid is None else grid
         if rays is None:
             rays = generate_lidar_rays()
+        if not isinstance(rays, Tensor) or not rays.is_floating_point():
+            kind = rays.dtype if isinstance(rays, Tensor) else type(rays).__name__
+            raise TypeError(f"rays: expected a floating (R, 3) tensor of directions, got {kind}")
         if rays.ndim != 2 or rays.shape[-1] != 3 or rays.shape[0] == 0:
             raise ValueError(f"rays: expected (R, 3) directions, got {tuple(rays.shape)}")
-        self.register_buffer("rays", rays.float(), persistent=False)
+        check_finite("rays", rays)
+        rays = rays.float()  # SparseOcc's rays are float32
+        zero = (rays == 0).all(-1)
+        if bool(zero.any()):
+            raise ValueError(
+                f"rays: {int(zero.sum())} of {rays.shape[0]} directions are zero vectors "
+                "(or underflow float32); expected non-zero directions"
+            )
+        self.register_buffer("rays", rays, persistent=False)
         kw = {"dtype": torch.int64, "device": device}
         self.register_buffer("gt_count", torch.zeros(num_classes, **kw))
         self.register_buffer("pred_count", torch.zeros(num_classes, **kw))
@@ -218,25 +232,31 @@ class RayIoU(CountingMetric):
 
     def _check_labels(self, name: str, labels: Tensor | np.ndarray) -> Tensor:
         if isinstance(labels, np.ndarray):
-            labels = torch.from_numpy(np.ascontiguousarray(labels))
+            labels = as_label_tensor(name, labels) if labels.dtype.kind in "iu" else labels
         if (
             not isinstance(labels, Tensor)
             or labels.is_floating_point()
             or labels.is_complex()
             or labels.dtype == torch.bool
         ):
-            kind = labels.dtype if isinstance(labels, Tensor) else type(labels).__name__
+            kind = (
+                labels.dtype if isinstance(labels, Tensor | np.ndarray) else type(labels).__name__
+            )
             raise TypeError(f"{name}: expected an integer label grid, got {kind}")
+        labels = as_label_tensor(name, labels)  # any integer dtype
         if tuple(labels.shape) != self.grid.shape:
             raise ValueError(
                 f"{name}: expected shape {self.grid.shape} (the grid), got {tuple(labels.shape)}"
             )
         labels = labels.long()
-        if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= self.num_classes):
-            raise ValueError(
-                f"{name}: labels must lie in 0..{self.num_classes - 1}, found "
-                f"{int(labels.min())}..{int(labels.max())}"
-            )
+        if labels.numel():
+            low, high = (int(v) for v in torch.aminmax(labels))
+            if low < 0 or high >= self.num_classes:
+                bad = low if low < 0 else high
+                raise ValueError(
+                    f"{name}: labels must lie in 0..{self.num_classes - 1}, found {bad} "
+                    f"(values {low}..{high}); RayIoU has no ignore label"
+                )
         return labels
 
     @typechecked
@@ -249,25 +269,45 @@ class RayIoU(CountingMetric):
         """Cast and score one sample.
 
         Args:
-            pred: ``(X, Y, Z)`` integer predicted labels in ``0..C-1`` on the metric's grid.
-            gt: ``(X, Y, Z)`` integer ground-truth labels, same grid and range.
+            pred: ``(X, Y, Z)`` predicted labels in ``0..C-1`` on the metric's grid, any
+                integer dtype (uint8 as Occ3D ships them, int8 ... int64; the counts do not
+                depend on it), torch or numpy.
+            gt: ``(X, Y, Z)`` ground-truth labels, same grid and range.
             origins: ``(K, 3)`` ray origins in metres (ego frame; :func:`lidar_origins`);
-                K >= 1. Origins outside the grid are allowed (their rays may never enter).
+                K >= 1, finite, any real dtype (used in float64, as SparseOcc does).
+                Origins outside the grid are allowed (their rays may never enter).
+
+        Raises:
+            TypeError: bool or floating labels, bool or complex origins.
+            ValueError: a wrong shape; a label outside ``0..C-1`` (named with the value;
+                there is no ignore label: -1 or 255 are refused); no origin; non-finite
+                origins; an estimated memory need above :func:`dego.set_memory_limit`'s
+                limit (checked before casting).
         """
         pred, gt = self._check_labels("pred", pred), self._check_labels("gt", gt)
         if isinstance(origins, np.ndarray):
-            origins = torch.from_numpy(origins)
+            origins = torch.from_numpy(np.ascontiguousarray(origins))
         if origins.dtype == torch.bool or origins.is_complex():
             raise TypeError(f"origins: expected real coordinates, got {origins.dtype}")
         if origins.ndim != 2 or origins.shape[-1] != 3:
             raise ValueError(f"origins: expected (K, 3), got {tuple(origins.shape)}")
         if origins.shape[0] == 0:
             raise ValueError("origins: need at least one origin, got K = 0")
+        if origins.is_floating_point():
+            check_finite("origins", origins)
+        # both casts' results, then per ray: distances and labels gathered, the error and a
+        # bool per threshold
+        n, t = origins.shape[0] * self.rays.shape[0], len(self.thresholds)
+        per_ray = 2 * 12 + 48 + 2 * t
+        check_memory("RayIoU.update", _cast_bytes(n, self.grid, per_ray), _cast_sizes(n, self.grid))
         device = gt.device
         pred = pred.to(device)
+        # SparseOcc's convention: float64 origins, float32 rays
         origins, rays = origins.to(device, torch.float64), self.rays.to(device)
-        gt_distance, gt_label = cast_rays(gt, origins, rays, self.grid, self.free_label)
-        pred_distance, pred_label = cast_rays(pred, origins, rays, self.grid, self.free_label)
+        grid, free = self.grid, self.free_label
+        what = "RayIoU.update"
+        gt_distance, gt_label = _cast_product(gt, origins, rays, grid, free, what)
+        pred_distance, pred_label = _cast_product(pred, origins, rays, grid, free, what)
         scored = gt_label != self.free_label
         gt_label, pred_label = gt_label[scored], pred_label[scored]
         error = (pred_distance[scored] - gt_distance[scored]).abs()

@@ -8,15 +8,18 @@ from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 
 import torch
-from jaxtyping import Float, Int
+from jaxtyping import Float, Integer
 from torch import Tensor
 
 from dego._typing import typechecked
 
 
 @typechecked
-def per_class_iou(confusion: Int[Tensor, "C C"]) -> Float[Tensor, " C"]:
+def per_class_iou(confusion: Integer[Tensor, "C C"]) -> Float[Tensor, " C"]:
     """IoU ``tp / (tp + fp + fn)`` per class from a confusion matrix (rows gt), float64.
+
+    ``confusion`` holds counts of any integer dtype (not labels); the result does not
+    depend on the dtype.
 
     A class that is neither in gt nor predicted gets NaN (0/0), as in Occ3D; one that is
     predicted but absent from gt gets 0.

@@ -14,6 +14,7 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor, nn
 
+from dego._policy import HALF_DTYPES, check_dtype, check_finite, check_memory, compute_dtype
 from dego._typing import typechecked
 from dego.gaussians import GaussianSet
 from dego.splatting.composite import CompositeRules, composite_tiles
@@ -144,12 +145,13 @@ def _check_inputs(
     v = world_to_cam.shape[1]
     if world_to_cam.shape[0] != b:
         raise ValueError(f"world_to_cam: batch {world_to_cam.shape[0]} != gaussians' batch {b}")
-    for name, t in (("world_to_cam", world_to_cam), ("intrinsics", intrinsics)):
-        if t.dtype != gaussians.dtype or t.device != gaussians.device:
-            raise TypeError(
-                f"{name}: {t.dtype} on {t.device}, expected the gaussians' "
-                f"{gaussians.dtype} on {gaussians.device}"
-            )
+    optional = (("features", features), ("background", background))
+    tensors = [("world_to_cam", world_to_cam), ("intrinsics", intrinsics)]
+    tensors += [(name, t) for name, t in optional if t is not None]
+    for name, t in tensors:
+        check_dtype(name, t, gaussians.dtype, "the gaussians")
+        if t.device != gaussians.device:
+            raise ValueError(f"{name}: on {t.device}, expected the gaussians' {gaussians.device}")
     if features is not None and features.shape[-2] != n:
         raise ValueError(
             f"features: expected shape (B, N, C) or (B, V, N, C) with N = {n}, "
@@ -168,9 +170,12 @@ def _check_inputs(
     transposed = outside & (cx >= 0) & (cx <= height) & (cy >= 0) & (cy <= width)
     opacities = gaussians.opacities
     out_of_range = (opacities < 0) | (opacities > 1)
+    finite = [(name, t) for name, t in gaussians._items() if name != "features"]
+    finite += [(name, t) for name, t in optional if t is not None]
     # One host sync for every value check.
     flags = torch.stack(
         [
+            *(torch.isfinite(t).all() for _, t in finite),
             torch.isfinite(world_to_cam).all(),
             torch.isfinite(intrinsics).all(),
             ((intrinsics[..., 0, 0] > 0) & (intrinsics[..., 1, 1] > 0)).all(),
@@ -183,6 +188,11 @@ def _check_inputs(
             (gaussians.scales < 0).all(),
         ]
     ).tolist()
+    for (name, t), ok in zip(finite, flags[: len(finite)], strict=True):
+        if not ok:
+            label = name if name in ("features", "background") else f"gaussians.{name}"
+            check_finite(label, t)
+    flags = flags[len(finite) :]
     (w2c_finite, k_finite, focal_ok, skew_ok, k_row_ok, w2c_row_ok) = flags[:6]
     (looks_transposed, some_bad_opacity, all_bad_opacity, all_negative_scales) = flags[6:]
     if not w2c_finite:
@@ -487,12 +497,47 @@ def _prepare(
     image_size: ImageSize,
     features: Tensor | None,
     background: Tensor | None,
-) -> tuple[tuple[int, int], Tensor | None]:
-    """Checked ``(H, W)`` and the features to render (default: the Gaussians')."""
+    config: SplatConfig,
+) -> tuple[tuple[int, int], GaussianSet, Tensor, Tensor, Tensor | None, Tensor | None]:
+    """Check a call and return ``(H, W)`` and the tensors to render with: the features
+    default to the Gaussians', and float16 / bfloat16 inputs are computed in float32."""
     size = _image_size(image_size)
     features = gaussians.features if features is None else features
     _check_inputs(gaussians, world_to_cam, intrinsics, size, features, background)
-    return size, features
+    _check_memory(gaussians, world_to_cam.shape[1], size, features, config)
+    if gaussians.dtype in HALF_DTYPES:
+        gaussians, world_to_cam, intrinsics = (
+            t.to(torch.float32) for t in (gaussians, world_to_cam, intrinsics)
+        )
+        features, background = (
+            None if t is None else t.to(torch.float32) for t in (features, background)
+        )
+    return size, gaussians, world_to_cam, intrinsics, features, background
+
+
+def _check_memory(
+    gaussians: GaussianSet,
+    views: int,
+    size: tuple[int, int],
+    features: Tensor | None,
+    config: SplatConfig,
+) -> None:
+    """Estimate the bytes of a render (per-pixel accumulators and their gradients, the
+    per (camera, Gaussian) projection, the compositing's pair buffers) before allocating."""
+    b, n = gaussians.batch_shape[0], gaussians.num_gaussians
+    itemsize = torch.empty((), dtype=compute_dtype(gaussians.dtype)).element_size()
+    channels = 0 if features is None else features.shape[-1]
+    d = channels + (config.depth_mode != "none")
+    ts = config.tile_size
+    pixels = b * views * math.ceil(size[0] / ts) * ts * math.ceil(size[1] / ts) * ts
+    nbytes = pixels * (3 * d + 4) * itemsize * 2
+    nbytes += b * views * n * (40 + d) * itemsize
+    nbytes += config.max_pairs * itemsize * 15
+    sizes = (
+        f"{b * views} images of {size[0]} x {size[1]} with {d} channels, "
+        f"{n} Gaussians, {gaussians.dtype}"
+    )
+    check_memory("splat", nbytes, sizes)
 
 
 def _render(
@@ -510,14 +555,18 @@ def _render(
     """Render; ``means2d_hook`` gives, from the projection, the ``(B, V, N, 2)`` means the
     compositing reads (adapters use it to expose a packed layout), ``absgrad_sink``
     receives the absolute gradients (default: set as ``projection.means2d.absgrad``)."""
-    size, features = _prepare(gaussians, world_to_cam, intrinsics, image_size, features, background)
+    dtype = gaussians.dtype
+    size, gaussians, world_to_cam, intrinsics, features, background = _prepare(
+        gaussians, world_to_cam, intrinsics, image_size, features, background, config
+    )
     if config.backend != "torch":
         from dego.splatting import gsplat_backend
 
         if gsplat_backend.usable(gaussians, config, strict=config.backend == "gsplat"):
-            return gsplat_backend.render(
+            out = gsplat_backend.render(
                 gaussians, world_to_cam, intrinsics, size, features, background, config
             )
+            return _in_dtype(out, dtype)
     done = _composite(
         gaussians, world_to_cam, intrinsics, size, features, config, means2d_hook, absgrad_sink
     )
@@ -542,8 +591,21 @@ def _render(
         if config.depth_mode == "expected":
             depth = depth / alpha.clamp_min(1e-10)
     proj = done.projection
-    return SplatOutput(
+    out = SplatOutput(
         features=rendered, depth=depth, alpha=alpha, radii=proj.radii, projection=proj
+    )
+    return _in_dtype(out, dtype)
+
+
+def _in_dtype(out: SplatOutput, dtype: torch.dtype) -> SplatOutput:
+    """The images in ``dtype`` (the input's: float16 / bfloat16 are computed in float32)."""
+    if out.alpha.dtype == dtype:
+        return out
+    return dataclasses.replace(
+        out,
+        features=out.features.to(dtype),
+        depth=None if out.depth is None else out.depth.to(dtype),
+        alpha=out.alpha.to(dtype),
     )
 
 
@@ -572,7 +634,10 @@ def render_channels_last(
     alpha (B, V, H, W), projection)`` with X the features (plus background) followed by
     the depth when ``config.depth_mode`` renders one. No transposition: the tiles are
     already channels-last, so this costs no more than :func:`splat`."""
-    size, features = _prepare(gaussians, world_to_cam, intrinsics, image_size, features, background)
+    dtype = gaussians.dtype
+    size, gaussians, world_to_cam, intrinsics, features, background = _prepare(
+        gaussians, world_to_cam, intrinsics, image_size, features, background, config
+    )
     done = _composite(
         gaussians, world_to_cam, intrinsics, size, features, config, means2d_hook, absgrad_sink
     )
@@ -588,7 +653,7 @@ def render_channels_last(
     expected = config.depth_mode == "expected"
     if background is not None or expected:
         image = _FinishChannelsLast.apply(image, final_t, background, channels, expected)
-    return image, 1 - final_t, done.projection
+    return image.to(dtype), (1 - final_t).to(dtype), done.projection
 
 
 class _FinishChannelsLast(torch.autograd.Function):

@@ -28,8 +28,8 @@ def _check_key(sample_id: str, camera: int) -> None:
             f"sample_id: {sample_id!r} is not a safe file name; expected 1 to 200 characters "
             "from A-Z a-z 0-9 _ - . , not starting with '.', without '..' or path separators"
         )
-    if isinstance(camera, bool) or camera < 0:
-        raise ValueError(f"camera: expected an int >= 0, got {camera!r}")
+    if isinstance(camera, bool) or not 0 <= camera < 2**63:
+        raise ValueError(f"camera: expected an int >= 0 (and < 2**63), got {camera!r}")
 
 
 class TeacherFeatureCache:
@@ -153,9 +153,12 @@ class TeacherFeatureCache:
         Raises:
             FileNotFoundError: no such entry.
             ValueError: the file is not a readable ``.npz`` of this format (truncated,
-                garbage, missing arrays), its dtype differs from the cache's, its key
-                differs from the requested one, its shape is wrong or its values are not
-                finite; the message names the path.
+                garbage, a member that is not a valid ``.npy`` array, a directory member,
+                a member name without ``.npy`` or twice, missing arrays, object arrays),
+                a metadata array is not the scalar it should be, the features' dtype
+                differs from the cache's, its key differs from the requested one, its
+                shape is wrong or its values are not finite; the message names the path
+                and the array (and the zip member when the member itself is bad).
         """
         if expected_shape is not None and any(isinstance(n, bool) or n < 1 for n in expected_shape):
             raise ValueError(f"expected_shape: expected 3 ints >= 1, got {expected_shape!r}")
@@ -165,7 +168,7 @@ class TeacherFeatureCache:
         path = self.path(sample_id, camera)
         if not path.is_file():
             raise FileNotFoundError(self._missing(sample_id, camera, path))
-        arrays = read_npz(path, holds="a teacher feature cache entry")
+        arrays = read_npz(path, _REQUIRED, holds="a teacher feature cache entry")
         features = self._validate(path, arrays, sample_id, camera, expected_shape)
         if not features.flags.writeable:
             features = features.copy()
@@ -183,45 +186,57 @@ class TeacherFeatureCache:
         camera: int,
         expected_shape: tuple[int, int, int] | None,
     ) -> np.ndarray:
-        missing = [name for name in _REQUIRED if name not in arrays]
-        if missing:
-            raise ValueError(f"{path}: missing array(s) {missing}; not a teacher feature cache")
-        version = arrays["format_version"]
-        if version.shape != () or version.dtype.kind not in "iu":
-            raise ValueError(f"{path}: malformed format_version {version!r}")
-        if int(version) != FORMAT_VERSION:
+        version = _scalar_int(path, arrays, "format_version")
+        if version != FORMAT_VERSION:
             raise ValueError(
-                f"{path}: format_version {int(version)}, this reader handles {FORMAT_VERSION}"
+                f"{path}: format_version {version}, this reader handles {FORMAT_VERSION}"
             )
-        stored = _scalar_str(arrays["dtype"])
+        stored = _scalar_str(path, arrays, "dtype")
         features = arrays["features"]
         if stored != self._np_dtype.name or features.dtype != self._np_dtype:
             raise ValueError(
-                f"{path}: stored dtype {features.dtype} (metadata {stored!r}) differs from "
-                f"this cache's {self._np_dtype.name}"
+                f"{path}: features: stored dtype {features.dtype} (metadata {stored!r}) "
+                f"differs from this cache's {self._np_dtype.name}"
             )
-        stored_id, stored_camera = _scalar_str(arrays["sample_id"]), arrays["camera"]
-        if stored_camera.shape == () and stored_camera.dtype.kind in "iu":
-            stored_camera = int(stored_camera)
+        stored_id = _scalar_str(path, arrays, "sample_id")
+        stored_camera = _scalar_int(path, arrays, "camera")
         if (stored_id, stored_camera) != (sample_id, camera):
             raise ValueError(
                 f"{path}: holds sample {stored_id!r} camera {stored_camera!r}, "
                 f"not sample {sample_id!r} camera {camera}"
             )
         if features.ndim != 3:
-            raise ValueError(f"{path}: features must be (C, H, W), got shape {features.shape}")
+            raise ValueError(
+                f"{path}: features: must be (C, H, W), got shape {tuple(features.shape)}"
+            )
         if expected_shape is not None and tuple(features.shape) != tuple(expected_shape):
             raise ValueError(
-                f"{path}: features have shape {tuple(features.shape)}, "
+                f"{path}: features: shape {tuple(features.shape)}, "
                 f"expected_shape is {tuple(expected_shape)}"
             )
         if not np.isfinite(features).all():
-            raise ValueError(f"{path}: features hold NaN or inf")
+            raise ValueError(f"{path}: features: hold NaN or inf")
         return features
 
 
-def _scalar_str(array: np.ndarray) -> str | None:
-    return str(array[()]) if array.shape == () and array.dtype.kind == "U" else None
+def _scalar_int(path: Path, arrays: dict[str, np.ndarray], key: str) -> int:
+    """Metadata ``key``: a 0-d integer array, as :meth:`TeacherFeatureCache.save` writes."""
+    array = arrays[key]
+    if array.shape != () or array.dtype.kind not in "iu":
+        raise ValueError(
+            f"{path}: {key}: expected a scalar integer, got shape {array.shape} of {array.dtype}"
+        )
+    return int(array)
+
+
+def _scalar_str(path: Path, arrays: dict[str, np.ndarray], key: str) -> str:
+    """Metadata ``key``: a 0-d unicode array, as :meth:`TeacherFeatureCache.save` writes."""
+    array = arrays[key]
+    if array.shape != () or array.dtype.kind != "U":
+        raise ValueError(
+            f"{path}: {key}: expected a scalar string, got shape {array.shape} of {array.dtype}"
+        )
+    return str(array[()])
 
 
 __all__ = ["FORMAT_VERSION", "TeacherFeatureCache"]

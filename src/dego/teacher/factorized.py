@@ -14,6 +14,7 @@ patch size works without an image-size argument.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -21,6 +22,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from dego._checks import check_int, check_positive
+from dego._policy import check_dtype, check_memory
 from dego._typing import typechecked
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -57,7 +59,7 @@ class AttentionBlock(nn.Module):
     def __init__(self, dim: int, num_heads: int, mlp_ratio: float, rope_base: float) -> None:
         super().__init__()
         self.num_heads, self.rope_base = num_heads, rope_base
-        head_dim = dim // num_heads
+        self.head_dim = head_dim = dim // num_heads
         self.norm1 = nn.LayerNorm(dim)
         self.qkv = nn.Linear(dim, 3 * dim)
         self.q_norm, self.k_norm = nn.LayerNorm(head_dim), nn.LayerNorm(head_dim)
@@ -68,7 +70,8 @@ class AttentionBlock(nn.Module):
 
     def forward(self, x: Tensor, positions: Tensor) -> Tensor:
         batch, length, dim = x.shape
-        qkv = self.qkv(self.norm1(x)).view(batch, length, 3, self.num_heads, -1)
+        # Explicit sizes (no -1): a batch or length of 0 stays a valid, empty view.
+        qkv = self.qkv(self.norm1(x)).view(batch, length, 3, self.num_heads, self.head_dim)
         q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # (batch, heads, L, head_dim)
         q = rotary_2d(self.q_norm(q), positions, self.rope_base)
         k = rotary_2d(self.k_norm(k), positions, self.rope_base)
@@ -173,15 +176,54 @@ class FactorizedSpatioTemporalTeacher(nn.Module):
         special = patches.new_zeros(self.patch_start_idx, 2)
         return torch.cat([special, patches])
 
+    def _check_images(self, images: Tensor) -> None:
+        h, w = images.shape[-2:]
+        p = self.patch_size
+        if h < p or w < p:
+            raise ValueError(
+                f"images: H and W must be at least patch_size={p} (one patch), got {h} x {w}"
+            )
+        if h % p or w % p:
+            raise ValueError(
+                f"images: H and W must be multiples of patch_size={p}, got {h} x {w}; resize "
+                f"or crop (e.g. to {h // p * p} x {w // p * p})"
+            )
+        check_dtype("images", images, self.patch_embed.weight.dtype, "the teacher's parameters")
+        if images.device != self.patch_embed.weight.device:
+            raise ValueError(
+                f"images: on device {images.device} but the teacher is on "
+                f"{self.patch_embed.weight.device}"
+            )
+
+    def memory_estimate(self, images_shape: Sequence[int], itemsize: int = 4) -> tuple[int, str]:
+        """``(bytes, description)``: an upper estimate of what :meth:`forward` allocates for
+        images of ``images_shape = (B, T, V, 3, H, W)`` with ``itemsize``-byte floats.
+
+        It counts the largest attention score matrix as if materialised (torch's math
+        backend of ``scaled_dot_product_attention``: ``B T heads (V P)^2`` across cameras,
+        ``B V heads (T P)^2`` across time), the MLP hidden activations, and the
+        ``2 depth`` per-block outputs kept in :class:`TeacherOutput` plus a few
+        working copies of the tokens.
+        """
+        b, t, v, _, h, w = (int(n) for n in images_shape)
+        p = self.patch_start_idx + (h // self.patch_size) * (w // self.patch_size)
+        c, depth = self.embed_dim, len(self.spatial_blocks)
+        block = self.spatial_blocks[0]
+        heads, hidden = block.num_heads, block.mlp[0].out_features
+        scores = max(b * t * heads * (v * p) ** 2, b * v * heads * (t * p) ** 2)
+        tokens = b * t * v * p
+        nbytes = itemsize * (scores + tokens * (hidden + (2 * depth + 8) * c))
+        sizes = (
+            f"B*T*V = {b}*{t}*{v} images of P = {p} tokens x C = {c}, {heads} heads, attention "
+            f"over V*P = {v * p} (cameras) and T*P = {t * p} (frames) tokens, "
+            f"{itemsize}-byte floats"
+        )
+        return nbytes, sizes
+
     def tokens(self, images: Float[Tensor, "B T V 3 H W"]) -> Tensor:
         """Initial tokens ``(B, T, V, P, C)``: camera, registers, then patches row-major."""
-        b, t, v, _, h, w = images.shape
-        if h % self.patch_size or w % self.patch_size:
-            raise ValueError(
-                f"images: H and W must be multiples of patch_size={self.patch_size}, got "
-                f"{h} x {w}; resize or crop (e.g. to {h // self.patch_size * self.patch_size} x "
-                f"{w // self.patch_size * self.patch_size})"
-            )
+        self._check_images(images)
+        b, t, v = images.shape[:3]
         x = images.flatten(0, 2)
         if self.normalize:
             x = (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
@@ -192,8 +234,22 @@ class FactorizedSpatioTemporalTeacher(nn.Module):
 
     @typechecked
     def forward(self, images: Float[Tensor, "B T V 3 H W"]) -> TeacherOutput:
-        """Run every block on a clip; ``images`` in [0, 1] (see ``normalize``)."""
+        """Run every block on a clip ``(B, T, V, 3, H, W)``; ``images`` in [0, 1] (see
+        ``normalize``), in the dtype and on the device of the teacher's parameters.
+
+        Empty clips (B, T or V = 0) give empty ``(B, T, V, P, C)`` outputs. Before
+        allocating, the memory estimate of :meth:`memory_estimate` goes through dego's
+        memory guard (:func:`dego.set_memory_limit`).
+
+        Raises:
+            TypeError: ``images``' dtype differs from the parameters'.
+            ValueError: H or W below ``patch_size`` or not a multiple of it, another
+                device, or an estimate above the memory limit.
+        """
+        self._check_images(images)
         b, t, v, _, h, w = images.shape
+        nbytes, sizes = self.memory_estimate(images.shape, images.element_size())
+        check_memory("FactorizedSpatioTemporalTeacher", nbytes, sizes)
         grid = (h // self.patch_size, w // self.patch_size)
         z = self.tokens(images)
         p, c = z.shape[-2:]

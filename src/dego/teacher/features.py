@@ -11,6 +11,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from dego._checks import check_int
+from dego._policy import check_dtype, check_memory, compute_dtype
 from dego._typing import typechecked
 from dego.teacher.factorized import TeacherOutput
 
@@ -96,18 +97,31 @@ class FactorizedTeacherFeatures(nn.Module):
     ) -> Float[Tensor, "B V C2 Hp Wp"]:
         """The unprojected teacher maps ``(B, V, in_dim, H', W')`` at ``reference_time``."""
         if isinstance(teacher, TeacherOutput):
-            blocks = _pick(teacher.spatial, self.layer, "layer")
-            t = blocks.shape[1]
-            time = _index(self.reference_time, t, "reference_time")
-            tokens = torch.cat(
-                [blocks[:, time], _pick(teacher.temporal, self.layer, "layer")[:, time]], -1
-            )  # (B, V, P, 2C)
+            spatial = _pick(teacher.spatial, self.layer, "layer")
+            temporal = _pick(teacher.temporal, self.layer, "layer")
+            for name, block in (("spatial", spatial), ("temporal", temporal)):
+                if block.ndim != 5:
+                    raise ValueError(
+                        f"teacher: expected {name} blocks (B, T, V, P, C), got {tuple(block.shape)}"
+                    )
+            if temporal.shape != spatial.shape:
+                raise ValueError(
+                    f"teacher: temporal block {tuple(temporal.shape)} differs from spatial "
+                    f"block {tuple(spatial.shape)}"
+                )
+            check_dtype("teacher", temporal, spatial.dtype, "its spatial blocks")
+            time = self._time(spatial.shape[1])
+            tokens = torch.cat([spatial[:, time], temporal[:, time]], -1)  # (B, V, P, 2C)
             start, grid = teacher.patch_start_idx, teacher.patch_grid
         else:
             if patch_grid is None or num_cameras is None:
                 raise ValueError(
                     "patch_grid, num_cameras: both are required with VGGT-layout outputs"
                 )
+            if len(patch_grid) != 2 or any(
+                isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in patch_grid
+            ):
+                raise ValueError(f"patch_grid: expected (H', W') ints >= 1, got {patch_grid!r}")
             block = _pick(list(teacher), self.layer, "layer")
             if block.ndim != 4:
                 raise ValueError(
@@ -119,7 +133,7 @@ class FactorizedTeacherFeatures(nn.Module):
                     f"num_cameras: S = {s} images are not a whole number of {num_cameras} cameras"
                 )
             t = s // num_cameras
-            time = _index(self.reference_time, t, "reference_time")
+            time = self._time(t)
             tokens = block.view(b, t, num_cameras, *block.shape[2:])[:, time]
             start, grid = self.patch_start_idx, tuple(patch_grid)
         rows, cols = grid
@@ -136,6 +150,15 @@ class FactorizedTeacherFeatures(nn.Module):
         patches = tokens[..., start:, :]  # (B, V, H' W', 2C)
         return patches.unflatten(-2, (rows, cols)).movedim(-1, -3)
 
+    def _time(self, t: int) -> int:
+        """``reference_time`` as an index into T time steps."""
+        if t == 0:
+            raise ValueError(
+                f"teacher: holds T = 0 time steps; reference_time={self.reference_time} "
+                "needs at least one"
+            )
+        return _index(self.reference_time, t, "reference_time")
+
     @typechecked
     def forward(
         self,
@@ -145,16 +168,46 @@ class FactorizedTeacherFeatures(nn.Module):
         patch_grid: tuple[int, int] | None = None,
         num_cameras: int | None = None,
     ) -> Float[Tensor, "B V C H W"]:
-        """Distillation targets ``(B, V, out_dim, H, W)`` at ``output_size = (H, W)``."""
-        if len(output_size) != 2 or min(output_size) < 1:
-            raise ValueError(f"output_size: expected (H, W) >= 1, got {output_size!r}")
-        maps = self.project(
-            self.select(teacher, patch_grid=patch_grid, num_cameras=num_cameras)
-        )  # (B, V, C_a, H', W')
+        """Distillation targets ``(B, V, out_dim, H, W)`` at ``output_size = (H, W)``.
+
+        ``teacher``: see the class description. Its tokens give the dtype (the frozen
+        projector follows it; the trainable one must share it) and an empty batch or
+        camera axis (B or V = 0) gives an empty result. With the frozen projector,
+        float16 / bfloat16 tokens are computed in float32 and returned in their dtype.
+        The output's size goes through dego's memory guard before it is allocated.
+
+        Raises:
+            TypeError: the teacher's blocks differ in dtype, or differ from the trainable
+                projector's.
+            ValueError: a malformed teacher (no blocks, T = 0 time steps, wrong token or
+                channel counts), a bad ``output_size``, ``patch_grid`` or
+                ``num_cameras``, or an output above the memory limit.
+            IndexError: ``layer`` or ``reference_time`` out of range.
+        """
+        if (
+            len(output_size) != 2
+            or any(isinstance(n, bool) or not isinstance(n, int) for n in output_size)
+            or min(output_size) < 1
+        ):
+            raise ValueError(f"output_size: expected (H, W) ints >= 1, got {output_size!r}")
+        selected = self.select(teacher, patch_grid=patch_grid, num_cameras=num_cameras)
+        if self.projector == "trainable":
+            check_dtype("teacher", selected, self.linear.weight.dtype, "the projector")
+        b, v = selected.shape[:2]
+        check_memory(
+            "FactorizedTeacherFeatures",
+            selected.element_size() * b * v * self.out_dim * output_size[0] * output_size[1],
+            f"B*V = {b}*{v} maps of {self.out_dim} channels x {output_size[0]} x "
+            f"{output_size[1]}, {selected.dtype}",
+        )
+        dtype = selected.dtype
+        if self.projector == "frozen":  # float16 / bfloat16: computed in float32
+            selected = selected.to(compute_dtype(dtype))
+        maps = self.project(selected)  # (B, V, C_a, H', W')
         upsampled = F.interpolate(
             maps.flatten(0, 1), size=tuple(output_size), mode="bilinear", align_corners=False
         )
-        return upsampled.view(*maps.shape[:3], *output_size)
+        return upsampled.view(*maps.shape[:3], *output_size).to(dtype)
 
     def extra_repr(self) -> str:
         return (
@@ -170,6 +223,8 @@ def _index(i: int, size: int, name: str) -> int:
 
 
 def _pick(blocks: Sequence[Tensor], layer: int, name: str) -> Tensor:
+    if len(blocks) == 0:
+        raise ValueError("teacher: holds no blocks")
     return blocks[_index(layer, len(blocks), name)]
 
 

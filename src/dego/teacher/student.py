@@ -6,6 +6,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from dego._checks import check_int
+from dego._policy import check_dtype
 from dego._typing import typechecked
 
 
@@ -25,7 +26,9 @@ class StudentProjector(nn.Module):
             LeakyReLU -> Linear(512, 32)``; stack modules for that exact layout.
         negative_slope: LeakyReLU slope of the hidden variant (torch's default 0.01).
 
-    Flatten extra axes (time, cameras) into the leading ``*batch`` axes; any number works.
+    Flatten extra axes (time, cameras) into the leading ``*batch`` axes; any number works,
+    including empty ones (a ``(0, C_g)`` input gives ``(0, C_a)``). Inputs must share the
+    parameters' dtype (``TypeError`` otherwise) and device (``ValueError``).
     """
 
     def __init__(
@@ -60,11 +63,7 @@ class StudentProjector(nn.Module):
                 f"got shape {tuple(features.shape)}"
             )
         weight = next(self.parameters())
-        if features.dtype != weight.dtype:
-            raise TypeError(
-                f"features: dtype {features.dtype} differs from the projector's parameters "
-                f"({weight.dtype}); convert one of them with .to(dtype)"
-            )
+        check_dtype("features", features, weight.dtype, "StudentProjector")
         if features.device != weight.device:
             raise ValueError(
                 f"features: on device {features.device} but the projector is on {weight.device}"
