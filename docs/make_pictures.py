@@ -1,16 +1,37 @@
 """Draw the pictures of the module pages (docs/images/*.png) with dego itself.
 
-    python docs/make_pictures.py
+    python docs/make_pictures.py                        # all of PICTURES
+    python docs/make_pictures.py synthetic_bev.png ...  # only these
 
-Deterministic (fixed seeds, matplotlib's Agg renderer, no pyplot); about 15 s
-on one CPU core. The splatting and data pages' pictures (w1_depth_semantics.png,
-synthetic_*.png) are made elsewhere and are not redrawn here.
+Deterministic (fixed seeds, matplotlib's Agg renderer, no pyplot); about 20 s on one
+CPU core. Every picture in docs/images comes from a command in this repository:
+
+=================================  =====================================================
+picture                            command
+=================================  =====================================================
+foundation_gaussians.png,          ``python docs/make_pictures.py`` (this file)
+voxelizer_bev.png,
+deformation_mask.png,
+teacher_targets.png,
+metrics_bev.png, rayiou_rays.png,
+synthetic_cameras.png,
+synthetic_bev.png
+w1_depth_semantics.png             ``python benchmarks/bench_splat.py --skip-w2
+                                   --repeats 1 --png docs/images/w1_depth_semantics.png``
+demo_bev_{static,rigid,            ``dego demo --out /tmp/demo`` (seed 0, full run), then
+decoupled}.png,                    copy ``bev_*.png``, ``camera_decoupled.png`` and
+demo_camera_decoupled.png,         ``losses.png`` to ``docs/images/demo_*.png``
+demo_losses.png
+study.png                          ``OMP_NUM_THREADS=1 dego study --out /tmp/study``, copy
+                                   ``study.png``
+=================================  =====================================================
 """
 
 from __future__ import annotations
 
 import functools
 import math
+import sys
 from pathlib import Path
 
 import torch
@@ -399,6 +420,18 @@ def rayiou() -> Figure:
     return fig
 
 
+def synthetic_cameras() -> Figure:
+    """The data page's six cameras of ``SyntheticScene(0)``'s reference frame."""
+    frame = SyntheticScene(seed=0).frame(0)
+    return viz.camera_panels(frame.images, frame.depth, frame.semantics, panel_width=2.0)
+
+
+def synthetic_bev() -> Figure:
+    """The same frame's ground truth from above."""
+    ax = viz.plot_bev(SyntheticScene(seed=0).frame(0).occupancy)
+    return ax.figure
+
+
 PICTURES = {
     "foundation_gaussians.png": foundation,
     "voxelizer_bev.png": voxelizer,
@@ -406,11 +439,18 @@ PICTURES = {
     "teacher_targets.png": teacher,
     "metrics_bev.png": metrics,
     "rayiou_rays.png": rayiou,
+    "synthetic_cameras.png": synthetic_cameras,
+    "synthetic_bev.png": synthetic_bev,
 }
 
 
 def main() -> None:
-    for name, draw in PICTURES.items():
+    names = sys.argv[1:] or list(PICTURES)
+    unknown = sorted(set(names) - set(PICTURES))
+    if unknown:
+        raise SystemExit(f"unknown pictures {unknown}; choose from {sorted(PICTURES)}")
+    for name in names:
+        draw = PICTURES[name]
         path = viz.save_figure(draw(), IMAGES / name, dpi=DPI)
         print(f"{path.name}: {path.stat().st_size / 1024:.0f} KiB")
 

@@ -1,12 +1,16 @@
-"""Shared pytest configuration: hypothesis profiles and the device/dtype fixtures."""
+"""Shared pytest configuration: hypothesis profiles, markers, the device/dtype fixtures and the
+`source_tree` fixture (the repository root; skips when the tests run from a copy)."""
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 import torch
 from hypothesis import HealthCheck, settings
+
+from tests._repo import ROOT, SOURCE_TREE_REASON
 
 settings.register_profile(
     "default",
@@ -19,6 +23,23 @@ settings.register_profile("thorough", parent=settings.get_profile("default"), ma
 settings.load_profile(
     os.environ.get("DEGO_HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "default")
 )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Also in pyproject.toml; registered here for runs from a copy of tests/ (no pyproject there,
+    # and `--strict-markers` would reject the marker).
+    config.addinivalue_line(
+        "markers", "slow: long-running case (kept few; still part of the default run)"
+    )
+
+
+@pytest.fixture(scope="session")
+def source_tree() -> Path:
+    """The repository root; the test skips when the tests run outside it (a copy of tests/)."""
+    if ROOT is None:
+        pytest.skip(SOURCE_TREE_REASON)
+    return ROOT
+
 
 DEVICES = [
     "cpu",

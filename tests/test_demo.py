@@ -65,6 +65,9 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
     for name in ROWS:
         assert f"| {name} |" in result.stdout
     assert "3/3" in result.stderr  # the progress bar reached the end
+    wrote = next(line for line in result.stdout.splitlines() if line.startswith("wrote "))
+    for name in ("results.md", "results.json", "losses.png"):
+        assert str(out / name) in wrote, wrote
 
     payload = json.loads((out / "results.json").read_text())
     assert payload["settings"]["iterations"] == 3
@@ -369,6 +372,25 @@ def test_budgets() -> None:
     assert set(BUDGETS["quick"]) == set(BUDGETS["full"]) == {"frames", "iterations", "gaussians"}
 
 
+def test_help_states_the_budgets_and_durations_that_the_demo_page_states(
+    source_tree: Path,
+) -> None:
+    from dego.cli import DURATIONS, build_parser, describe_budget
+
+    parser = build_parser()
+    top = " ".join(parser.format_help().split())
+    assert "dego demo" in top and "dego study" in top and "::" not in top
+    demo_help = " ".join(parser._subparsers._group_actions[0].choices["demo"].format_help().split())
+    page = " ".join((source_tree / "docs" / "demo.md").read_text().split())
+    readme = " ".join((source_tree / "README.md").read_text().split())
+    for name in BUDGETS:
+        assert describe_budget(name) in demo_help, name
+        assert DURATIONS[name] in demo_help, name
+        assert DURATIONS[name] in page, name
+        assert DURATIONS[name] in readme, name
+    assert "results.json" in demo_help
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [
@@ -405,11 +427,10 @@ def test_demo_runs_on_cuda(tmp_path: Path) -> None:
     assert code == 0 and (tmp_path / "results.json").exists()
 
 
-def test_documented_budgets_come_from_the_code() -> None:
+def test_documented_budgets_come_from_the_code(source_tree: Path) -> None:
     from dego.cli import build_parser, describe_budget
 
-    root = Path(__file__).resolve().parents[1]
-    for page in (root / "README.md", root / "docs" / "demo.md"):
+    for page in (source_tree / "README.md", source_tree / "docs" / "demo.md"):
         text = " ".join(page.read_text().split())
         for name in BUDGETS:
             assert describe_budget(name) in text, (page.name, name)
@@ -417,12 +438,11 @@ def test_documented_budgets_come_from_the_code() -> None:
     assert describe_budget("quick") in " ".join(demo_help.split())
 
 
-def test_readme_demo_table_is_the_demo_pages() -> None:
-    root = Path(__file__).resolve().parents[1]
-    readme = (root / "README.md").read_text()
+def test_readme_demo_table_is_the_demo_pages(source_tree: Path) -> None:
+    readme = (source_tree / "README.md").read_text()
     lines = readme[readme.index("Mean over seeds 0-4") :].splitlines()
     first = next(i for i, line in enumerate(lines) if line.startswith("|"))
     end = next(i for i in range(first, len(lines)) if not lines[i].startswith("|"))
     table = lines[first:end]  # the first table after the sentence
     assert table[0].startswith("| variant |") and len(table) == 7
-    assert "\n".join(table) in (root / "docs" / "demo.md").read_text()
+    assert "\n".join(table) in (source_tree / "docs" / "demo.md").read_text()

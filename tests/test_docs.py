@@ -7,24 +7,27 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+from tests._repo import source_params
+
+DOCUMENTS = source_params(
+    lambda root: [root / "README.md", *sorted((root / "docs").glob("*.md"))], ids=lambda p: p.name
+)
 
 
 def python_blocks(path: Path) -> list[str]:
     return re.findall(r"```python\n(.*?)```", path.read_text(), flags=re.DOTALL)
 
 
-@pytest.mark.parametrize("path", DOCUMENTS, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", DOCUMENTS)
 def test_python_examples_run(path: Path) -> None:
     namespace: dict[str, object] = {}
     for block in python_blocks(path):  # blocks of one page share a namespace, as in a session
         exec(compile(block, str(path), "exec"), namespace)
 
 
-def test_readme_has_exactly_two_setup_commands() -> None:
+def test_readme_has_exactly_two_setup_commands(source_tree: Path) -> None:
     bash_blocks = re.findall(
-        r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.DOTALL
+        r"```bash\n(.*?)```", (source_tree / "README.md").read_text(), flags=re.DOTALL
     )
     commands = [
         line

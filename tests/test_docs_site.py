@@ -11,17 +11,18 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests._repo import needs_source_tree
 
 
 @pytest.mark.skipif(
     importlib.util.find_spec("mkdocs") is None, reason="mkdocs is not installed (extra: docs)"
 )
-def test_site_builds_strictly(tmp_path: Path) -> None:
+@needs_source_tree  # checked first: outside the tree, the reason is the tree, not mkdocs
+def test_site_builds_strictly(source_tree: Path, tmp_path: Path) -> None:
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}  # material's end-of-life banner
     result = subprocess.run(
         [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path)],
-        cwd=ROOT,
+        cwd=source_tree,
         capture_output=True,
         text=True,
         env=env,

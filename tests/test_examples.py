@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-EXAMPLES = ROOT / "examples"
+from tests._repo import ROOT, needs_source_tree
+
 TMP = "{tmp}"  # replaced by the test's tmp_path
 
 # The arguments of every script (a new script needs an entry here: see the test below).
@@ -32,8 +32,9 @@ TIMEOUT_S = 300
 
 
 def run_example(name: str, tmp_path: Path) -> subprocess.CompletedProcess[str]:
+    assert ROOT is not None
     args = [arg.replace(TMP, str(tmp_path)) for arg in ARGUMENTS[name]]
-    command = [sys.executable, *LAUNCHERS.get(name, []), str(EXAMPLES / name), *args]
+    command = [sys.executable, *LAUNCHERS.get(name, []), str(ROOT / "examples" / name), *args]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     result = subprocess.run(
         command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=TIMEOUT_S
@@ -46,16 +47,16 @@ def run_example(name: str, tmp_path: Path) -> subprocess.CompletedProcess[str]:
     return result
 
 
-def test_every_example_has_arguments() -> None:
-    scripts = {path.name for path in EXAMPLES.glob("*.py")}
+def test_every_example_has_arguments(source_tree: Path) -> None:
+    scripts = {path.name for path in (source_tree / "examples").glob("*.py")}
     missing = sorted(scripts - ARGUMENTS.keys())
     assert not missing, f"add the arguments of {missing} to ARGUMENTS in {Path(__file__).name}"
 
 
+@needs_source_tree
 @pytest.mark.parametrize("name", sorted(ARGUMENTS))
 def test_example_runs(name: str, tmp_path: Path) -> None:
-    if not (EXAMPLES / name).is_file():
-        pytest.skip(f"examples/{name} does not exist yet")
+    assert ROOT is not None and (ROOT / "examples" / name).is_file(), f"examples/{name} is missing"
     result = run_example(name, tmp_path)
 
     if name == "evaluate_occ3d.py":

@@ -6,15 +6,19 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-NOTEBOOKS = sorted((ROOT / "examples").glob("*.ipynb"))
+from tests._repo import source_params
+
+NOTEBOOKS = source_params(
+    lambda root: sorted((root / "examples").glob("*.ipynb")), ids=lambda p: p.stem
+)
 
 
-def test_there_are_at_least_four_notebooks() -> None:
-    assert len(NOTEBOOKS) >= 4, [p.name for p in NOTEBOOKS]
+def test_there_are_at_least_four_notebooks(source_tree: Path) -> None:
+    notebooks = sorted((source_tree / "examples").glob("*.ipynb"))
+    assert len(notebooks) >= 4, [p.name for p in notebooks]
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", NOTEBOOKS)
 def test_notebook_executes(path: Path, tmp_path: Path) -> None:
     nbclient = pytest.importorskip("nbclient")
     import nbformat  # a dependency of nbclient

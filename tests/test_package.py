@@ -31,10 +31,11 @@ def test_typed_marker_is_shipped() -> None:
         ("bench_deformation.py", ["--n", "300", "--t", "3", "--channels", "16", "--repeats", "1"]),
     ],
 )
-def test_benchmark_script_runs_on_a_small_case(script: str, args: list[str]) -> None:
-    root = Path(__file__).resolve().parents[1]
+def test_benchmark_script_runs_on_a_small_case(
+    source_tree: Path, script: str, args: list[str]
+) -> None:
     result = subprocess.run(
-        [sys.executable, str(root / "benchmarks" / script), *args],
+        [sys.executable, str(source_tree / "benchmarks" / script), *args],
         capture_output=True,
         text=True,
         timeout=300,

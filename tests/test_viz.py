@@ -189,7 +189,7 @@ def test_without_matplotlib_plots_raise_a_helpful_import_error(
         lambda: plot_bev(labels),  # the installed module too
     ]
     for call in calls:
-        with pytest.raises(ImportError, match=r'pip install "dego\[viz\]"'):
+        with pytest.raises(ImportError, match=r'pip install "dego-occupancy\[viz\]"'):
             call()
 
 

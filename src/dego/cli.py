@@ -41,7 +41,11 @@ from dego.demo import (
 )
 from dego.study import QUICK_STUDY, StudyConfig, run_study, write_study
 
-PROGRAM_DESCRIPTION = "Deformable Gaussian occupancy (DeGO) on synthetic clips: demo and study."
+PROGRAM_DESCRIPTION = (
+    "Run Deformable Gaussian Occupancy (DeGO) end to end on synthetic driving clips. "
+    "'dego demo' fits static, rigid and decoupled Gaussians to one clip and scores them; "
+    "'dego study' repeats the fits over seeds and Gaussian budgets."
+)
 DEMO_DESCRIPTION = (
     "Fit static, rigid and decoupled Gaussians to a synthetic clip from its pseudo labels, "
     "score them at every frame against the ground truth, print one table and write "
@@ -58,6 +62,13 @@ BUDGETS = {
     "full": {"frames": 5, "iterations": 600, "gaussians": 8000},
 }
 """Default clip length, iterations per variant and Gaussians of ``--quick`` and the full run."""
+
+DURATIONS = {
+    "quick": "37-43 s wall on 2 idle CPU cores; 2 minutes or more on a loaded 2-core VM",
+    "full": "6-7 minutes wall on 2 idle CPU cores; 8-13 minutes beside other jobs",
+}
+"""How long each :data:`BUDGETS` entry takes, as ``--help`` and docs/demo.md say it (the
+tests check that they agree); measured on docs/performance.md's "The demo"."""
 
 
 def describe_budget(name: str) -> str:
@@ -111,12 +122,13 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         help="fit static, rigid and decoupled Gaussians to a synthetic clip and score them",
         description=DEMO_DESCRIPTION,
+        epilog=f"Without --quick: {describe_budget('full')} ({DURATIONS['full']}).",
     )
     quick, full = BUDGETS["quick"], BUDGETS["full"]
     demo.add_argument(
         "--quick",
         action="store_true",
-        help=f"a smaller budget ({describe_budget('quick')}; under a minute on 2 CPU cores)",
+        help=f"a smaller budget: {describe_budget('quick')} ({DURATIONS['quick']})",
     )
     demo.add_argument("--seed", type=int, default=0, help="scene and fitting seed (0)")
     demo.add_argument(
@@ -362,7 +374,7 @@ def _write_pictures(
 
         from dego.demo.pictures import bev_picture, camera_picture, loss_picture
     except ImportError:
-        print('pictures skipped: they need matplotlib (pip install "dego[viz]")')
+        print('pictures skipped: they need matplotlib (pip install "dego-occupancy[viz]")')
         return []
     last = clip.num_frames - 1
     paths = [

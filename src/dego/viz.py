@@ -2,8 +2,9 @@
 
 Bird's-eye (BEV) and 3D views of Occ3D-style label grids, prediction vs ground truth
 side by side, and per-camera image / depth / semantics panels. The plotting functions
-need the optional extra ``dego[viz]`` (matplotlib), imported lazily so that ``import dego``
-never needs it; :func:`colorize_labels` and :func:`bev_labels` are plain torch/numpy.
+need the optional extra ``dego-occupancy[viz]`` (matplotlib), imported lazily so that
+``import dego`` never needs it; :func:`colorize_labels` and :func:`bev_labels` are plain
+torch/numpy.
 
 Figures are built with :class:`matplotlib.figure.Figure` on an Agg canvas, never through
 pyplot: nothing opens a window and the global backend is left alone. Save them with
@@ -50,7 +51,7 @@ RGB = tuple[int, int, int]
 WHITE: RGB = (255, 255, 255)
 
 _INSTALL_HINT = (
-    'dego.viz needs matplotlib, an optional dependency: pip install "dego[viz]" '
+    'dego.viz needs matplotlib, an optional dependency: pip install "dego-occupancy[viz]" '
     '(or pip install "matplotlib>=3.7")'
 )
 

@@ -1,6 +1,6 @@
 """The demo's pictures: BEV prediction vs ground truth, one camera's renders, loss curves.
 
-Needs matplotlib (``pip install "dego[viz]"``).
+Needs matplotlib (``pip install "dego-occupancy[viz]"``).
 """
 
 from __future__ import annotations

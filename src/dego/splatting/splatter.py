@@ -359,8 +359,9 @@ def splat(
             ``"accumulated"`` sum(w z) (gsplat's ``D``, what DeGO and GaussianFlowOcc
             train with), or ``"none"``; z is the camera z of the Gaussian's mean.
         backend: ``"torch"`` (this implementation, any device), ``"gsplat"`` (gsplat's CUDA
-            rasteriser, needs ``pip install dego[gsplat]`` and CUDA tensors) or ``"auto"``
-            (gsplat when it is usable and the settings match its compiled constants).
+            rasteriser, needs ``pip install "dego-occupancy[gsplat]"`` and CUDA tensors) or
+            ``"auto"`` (gsplat when it is usable and the settings match its compiled
+            constants).
         chunk_size: Gaussians composited per tile per step.
         max_pairs: bound on (Gaussian, pixel) pairs held at once; the compositing peak is
             about ``max_pairs * itemsize * 15`` bytes (backward), whatever N is. Smaller

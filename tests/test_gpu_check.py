@@ -1,0 +1,54 @@
+"""``benchmarks/gpu_check.sh``: its CPU dry run writes the report and installs nothing."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests._repo import ROOT, SOURCE_TREE_REASON
+
+SCRIPT = None if ROOT is None else ROOT / "benchmarks" / "gpu_check.sh"
+STEPS = [
+    "tests",
+    "bench_splat",
+    "gsplat_parity",
+    "bench_voxelize",
+    "bench_deformation",
+    "bench_rayiou",
+    "bench_metrics",
+]
+
+pytestmark = [
+    pytest.mark.skipif(SCRIPT is None, reason=SOURCE_TREE_REASON),
+    pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash"),
+]
+
+
+def test_cpu_dry_run_writes_the_report(tmp_path: Path) -> None:
+    out = tmp_path / "check"
+    done = subprocess.run(
+        ["bash", str(SCRIPT), str(out), "--device", "cpu"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    report = (out / "report.md").read_text()
+    rows = [line for line in report.splitlines() if line.startswith("| ") and "---" not in line]
+    assert [row.split("|")[1].strip() for row in rows[1:]] == STEPS
+    assert all("skipped" in row for row in rows[1:])
+    assert "- device: cpu" in report
+    assert not (out / "install.log").exists()  # a dry run installs nothing
+
+
+@pytest.mark.parametrize("args", [[], ["out", "--device", "tpu"], ["out", "--bogus"]])
+def test_bad_usage_exits_2(tmp_path: Path, args: list[str]) -> None:
+    done = subprocess.run(
+        ["bash", str(SCRIPT), *args], cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2
+    assert "usage" in done.stderr
