@@ -64,7 +64,7 @@ BUDGETS = {
 """Default clip length, iterations per variant and Gaussians of ``--quick`` and the full run."""
 
 DURATIONS = {
-    "quick": "37-43 s wall on 2 idle CPU cores; 2 minutes or more on a loaded 2-core VM",
+    "quick": "37-49 s wall on 2 idle CPU cores; 2 minutes or more on a loaded 2-core VM",
     "full": "6-7 minutes wall on 2 idle CPU cores; 8-13 minutes beside other jobs",
 }
 """How long each :data:`BUDGETS` entry takes, as ``--help`` and docs/demo.md say it (the
