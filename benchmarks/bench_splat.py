@@ -14,8 +14,6 @@ W2 (mid): 2 cameras at 128 x 352, 2,000 Gaussians: ours (tile-based) vs a dense
 
 from __future__ import annotations
 
-import statistics
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -25,7 +23,12 @@ from dego import GaussianSet, splat
 from dego.compat import gsplat as compat
 from dego.splatting import project_gaussians
 
-from harness import benchmark_parser, peak_memory_mib
+from harness import (
+    alternating_median_seconds,
+    benchmark_parser,
+    median_seconds,
+    peak_memory_mib,
+)
 from pictures import save_depth_and_semantics
 from scenes import occ3d_gaussians, surround_rig
 
@@ -108,24 +111,10 @@ def dense_render(
     return image[:, :, :-1], image[:, :, -1] / alpha.clamp_min(1e-10), alpha
 
 
-def median_time(fn: Callable[[], None], repeats: int, device: torch.device) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        start = time.perf_counter()
-        fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def report(
     label: str, fn: Callable[[], None], repeats: int, device: torch.device
 ) -> tuple[float, float]:
-    seconds = median_time(fn, repeats, device)
+    seconds = median_seconds(fn, device, repeats=repeats, warmup=1)
     peak = peak_memory_mib(fn, device)
     print(f"  {label:<44} {seconds:8.3f} s   peak {peak:8.1f} MiB")
     return seconds, peak
@@ -168,19 +157,8 @@ def compat_overhead(
         return gsplat_call(compat.rasterization, scene, w2c, k)
 
     runs = {"direct": forward_backward(direct, gs), "wrapped": forward_backward(wrapped, gs)}
-    times: dict[str, list[float]] = {name: [] for name in runs}
-    for fn in runs.values():
-        fn()  # warm-up
-    for _ in range(max(repeats, 5)):  # alternate, so drifts of a shared machine hit both
-        for name, fn in runs.items():
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            start = time.perf_counter()
-            fn()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            times[name].append(time.perf_counter() - start)
-    direct_s, wrapped_s = (statistics.median(times[name]) for name in runs)
+    medians = alternating_median_seconds(runs, device, repeats=max(repeats, 5))
+    direct_s, wrapped_s = medians["direct"], medians["wrapped"]
     peaks = {name: peak_memory_mib(fn, device) for name, fn in runs.items()}
     print(
         f"  {'dego splat, radius_rule gsplat>=1.5':<44} {direct_s:8.3f} s   "

@@ -89,16 +89,26 @@ def median_seconds(
     fn: Callable[[], Any], device: torch.device, *, repeats: int = 20, warmup: int = 3
 ) -> float:
     """Median wall time of ``repeats`` calls of ``fn`` after ``warmup`` calls."""
+    return alternating_median_seconds({"fn": fn}, device, repeats=repeats, warmup=warmup)["fn"]
+
+
+def alternating_median_seconds(
+    fns: dict[str, Callable[[], Any]], device: torch.device, *, repeats: int, warmup: int = 1
+) -> dict[str, float]:
+    """Median wall time of each of ``fns`` over ``repeats`` rounds that call them in turn,
+    after ``warmup`` rounds, so that drifts of a shared machine hit them all alike."""
     for _ in range(warmup):
-        fn()
+        for fn in fns.values():
+            fn()
     _synchronize(device)
-    times = []
+    times: dict[str, list[float]] = {name: [] for name in fns}
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        _synchronize(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            _synchronize(device)
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(values) for name, values in times.items()}
 
 
 Case = tuple[Callable[[], Any], Callable[[], Any]]

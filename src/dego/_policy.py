@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -97,10 +97,25 @@ def check_finite(name: str, tensor: Tensor) -> None:
         raise ValueError(f"{name}: {int(bad.sum())} of {tensor.numel()} values are not finite")
 
 
+def check_finite_with(named: Sequence[tuple[str, Tensor]], *flags: Tensor) -> list[int]:
+    """:func:`check_finite` on every ``(name, tensor)`` plus the values of other scalar
+    checks ``flags`` (bool or integer tensors), with one host sync for all of them.
+
+    Raises for the first non-finite tensor; returns the flags' values as ints.
+    """
+    values = [torch.isfinite(t).all() for _, t in named] + list(flags)
+    results = torch.stack([v.to(torch.int64) for v in values]).tolist() if values else []
+    for (name, tensor), ok in zip(named, results, strict=False):
+        if not ok:
+            check_finite(name, tensor)
+    return results[len(named) :]
+
+
 __all__ = [
     "HALF_DTYPES",
     "check_dtype",
     "check_finite",
+    "check_finite_with",
     "check_memory",
     "compute_dtype",
     "get_memory_limit",

@@ -17,7 +17,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from dego._checks import check_int, check_positive
-from dego._policy import check_finite
+from dego._policy import check_finite_with
 from dego._typing import typechecked
 from dego.encoding import positional_encoding
 from dego.gaussians import GaussianSet, _normalize, quaternion_multiply
@@ -362,10 +362,7 @@ class DecoupledDeformation(nn.Module):
             )
         inputs = [(f"gaussians.{name}", t) for name, t in gaussians._items()]
         inputs.append(("features", features))
-        finite = torch.stack([torch.isfinite(t).all() for _, t in inputs]).tolist()
-        for (name, value), ok in zip(inputs, finite, strict=True):
-            if not ok:
-                check_finite(name, value)
+        check_finite_with(inputs)
         times = self._normalized_times(times, b)  # (B, T)
 
         static = torch.cat(

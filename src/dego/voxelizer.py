@@ -24,7 +24,7 @@ from jaxtyping import Float, Int
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
-from dego._policy import check_dtype, check_finite, check_memory, compute_dtype
+from dego._policy import check_dtype, check_finite_with, check_memory, compute_dtype
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
 from dego.gaussians import QUATERNION_EPS, GaussianSet, _gram_of_scaled_rotation, _rotation_matrices
@@ -133,16 +133,12 @@ def _check_values(fields: dict[str, Tensor]) -> None:
     quaternions or opacities outside [0, 1]; one host sync when everything is valid."""
     scales, quats, opacities = fields["scales"], fields["quats"], fields["opacities"]
     outside = (opacities < 0) | (opacities > 1)
-    flags = [(~torch.isfinite(t)).sum() for t in fields.values()]
-    flags += [
+    non_positive, zero_norm, out_of_range = check_finite_with(
+        list(fields.items()),
         (scales <= 0).sum(),
         (torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS).sum(),
         outside.sum(),
-    ]
-    *non_finite, non_positive, zero_norm, out_of_range = torch.stack(flags).tolist()
-    for (name, value), count in zip(fields.items(), non_finite, strict=True):
-        if count:
-            check_finite(name, value)
+    )
     if non_positive:
         message = (
             f"scales: {non_positive} of {scales.numel()} values are <= 0 (e.g. "

@@ -14,7 +14,13 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor, nn
 
-from dego._policy import HALF_DTYPES, check_dtype, check_finite, check_memory, compute_dtype
+from dego._policy import (
+    HALF_DTYPES,
+    check_dtype,
+    check_finite_with,
+    check_memory,
+    compute_dtype,
+)
 from dego._typing import typechecked
 from dego.gaussians import GaussianSet
 from dego.splatting.composite import CompositeRules, composite_tiles
@@ -170,29 +176,22 @@ def _check_inputs(
     transposed = outside & (cx >= 0) & (cx <= height) & (cy >= 0) & (cy <= width)
     opacities = gaussians.opacities
     out_of_range = (opacities < 0) | (opacities > 1)
-    finite = [(name, t) for name, t in gaussians._items() if name != "features"]
+    finite = [(f"gaussians.{name}", t) for name, t in gaussians._items() if name != "features"]
     finite += [(name, t) for name, t in optional if t is not None]
     # One host sync for every value check.
-    flags = torch.stack(
-        [
-            *(torch.isfinite(t).all() for _, t in finite),
-            torch.isfinite(world_to_cam).all(),
-            torch.isfinite(intrinsics).all(),
-            ((intrinsics[..., 0, 0] > 0) & (intrinsics[..., 1, 1] > 0)).all(),
-            ((intrinsics[..., 0, 1].abs() <= 1e-6 * focal) & (intrinsics[..., 1, 0] == 0)).all(),
-            _matrix_rows_ok(intrinsics, [0.0, 0.0, 1.0]).all(),
-            _matrix_rows_ok(world_to_cam, [0.0, 0.0, 0.0, 1.0]).all(),
-            transposed.any(),
-            out_of_range.any(),
-            out_of_range.all(),
-            (gaussians.scales < 0).all(),
-        ]
-    ).tolist()
-    for (name, t), ok in zip(finite, flags[: len(finite)], strict=True):
-        if not ok:
-            label = name if name in ("features", "background") else f"gaussians.{name}"
-            check_finite(label, t)
-    flags = flags[len(finite) :]
+    flags = check_finite_with(
+        finite,
+        torch.isfinite(world_to_cam).all(),
+        torch.isfinite(intrinsics).all(),
+        ((intrinsics[..., 0, 0] > 0) & (intrinsics[..., 1, 1] > 0)).all(),
+        ((intrinsics[..., 0, 1].abs() <= 1e-6 * focal) & (intrinsics[..., 1, 0] == 0)).all(),
+        _matrix_rows_ok(intrinsics, [0.0, 0.0, 1.0]).all(),
+        _matrix_rows_ok(world_to_cam, [0.0, 0.0, 0.0, 1.0]).all(),
+        transposed.any(),
+        out_of_range.any(),
+        out_of_range.all(),
+        (gaussians.scales < 0).all(),
+    )
     (w2c_finite, k_finite, focal_ok, skew_ok, k_row_ok, w2c_row_ok) = flags[:6]
     (looks_transposed, some_bad_opacity, all_bad_opacity, all_negative_scales) = flags[6:]
     if not w2c_finite:
