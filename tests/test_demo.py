@@ -90,8 +90,11 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
 
 
 def test_console_script_is_declared() -> None:
-    scripts = importlib.metadata.entry_points(group="console_scripts")
-    assert [s.value for s in scripts if s.name == "dego"] == ["dego.cli:main"]
+    # Read our own distribution's metadata: another distribution in the same environment (an
+    # old pre-rename `dego` install, say) may declare a `dego` script too.
+    entry_points = importlib.metadata.distribution("dego-occupancy").entry_points
+    scripts = [e.value for e in entry_points if e.group == "console_scripts" and e.name == "dego"]
+    assert scripts == ["dego.cli:main"]
 
 
 def test_fitted_decoupled_scene_beats_the_untrained_scene(clip: DemoClip) -> None:
