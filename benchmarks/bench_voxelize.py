@@ -1,7 +1,7 @@
 """GaussianVoxelizer benchmarks, side by side on the same inputs in one run.
 
-Workload: 10,000 Gaussians in the Occ3D volume (scales 0.05-1 m), C = 16, the Occ3D
-200 x 200 x 16 grid, additive mode.
+Workload: 10,000 Gaussians (``--n``) in the Occ3D volume (scales 0.05-1 m), C = 16, the
+Occ3D 200 x 200 x 16 grid, additive mode.
 
 1. Ours, ``neighborhood="cube", nbh=5`` vs the official algorithm as described for
    DeGO / GaussianFlowOcc: the fixed 11^3 cube around each mean's voxel, a repeated 3x3
@@ -9,6 +9,10 @@ Workload: 10,000 Gaussians in the Occ3D volume (scales 0.05-1 m), C = 16, the Oc
    ``scatter_add``. Outputs must be identical (up to float summation order).
 2. Ours, ``neighborhood="ellipsoid"`` (k = 3) vs a dense evaluation of every Gaussian at
    every voxel centre, chunked over Gaussians (float64 quadratic form by one GEMM).
+3. Ours, ``neighborhood="scale_cube", scale_multiplier=3`` (GaussianFormer's cube of
+   ``max(1, ceil(3 max(s) / voxel))`` voxels around the mean's voxel) vs the same dense
+   evaluation, timed and memory-measured side by side (the dense one once: it takes
+   minutes at the default N), with the cube's truncation error.
 
 ``--precision`` instead measures float32 accuracy (no timings): the same float32 inputs are
 voxelised in float32 by ours and by the official algorithm, and compared with a float64
@@ -18,12 +22,15 @@ axis, anisotropy up to 20:1), needles (long axis 0.2-1 m, the other two 50x thin
 the first on a 0.5 m grid (a voxel size float32 represents exactly, unlike 0.4 m).
 
     python benchmarks/bench_voxelize.py [--device cuda] [--repeats 3] [--skip-dense]
+        [--n 10000] [--only all|cube|ellipsoid|scale_cube]
     python benchmarks/bench_voxelize.py --precision [--n 10000]
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -67,12 +74,12 @@ def official_cube(gs: GaussianSet, grid: VoxelGrid, nbh: int) -> tuple[torch.Ten
 
 def dense(gs: GaussianSet, grid: VoxelGrid, chunk: int = 64) -> tuple[torch.Tensor, torch.Tensor]:
     """Every Gaussian at every voxel centre (additive), chunked over Gaussians."""
-    centres = grid.centers(dtype=torch.float64).reshape(-1, 3)
+    centres = grid.centers(dtype=torch.float64, device=gs.device).reshape(-1, 3)
     x, y, z = centres.unbind(-1)
     basis = torch.stack([x * x, y * y, z * z, x * y, x * z, y * z, x, y, z, torch.ones_like(x)], -1)
     means, precision = gs.means[0].double(), gs.precisions()[0].double()
     values = torch.cat([gs.opacities[0, :, None], gs.features[0]], -1).double()
-    total = torch.zeros(centres.shape[0], values.shape[1], dtype=torch.float64)
+    total = torch.zeros(centres.shape[0], values.shape[1], dtype=torch.float64, device=gs.device)
     for start in range(0, means.shape[0], chunk):
         m, p = means[start : start + chunk], precision[start : start + chunk]
         pm = (p @ m.unsqueeze(-1)).squeeze(-1)
@@ -150,40 +157,92 @@ def row(label: str, seconds: float, peak: float, note: str = "") -> None:
     print(f"  {label:<46} {seconds:9.3f} s  peak {peak:8.1f} MiB  {note}")
 
 
+def timed_once(fn: Callable[[], Any], device: torch.device) -> tuple[float, float, Any]:
+    """``(seconds, peak MiB, result)`` of one call of ``fn``: the peak-memory measurement's
+    own call is timed, so a slow reference runs once."""
+    record: dict[str, Any] = {}
+
+    def run() -> None:
+        start = time.perf_counter()
+        record["result"] = fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        record["seconds"] = time.perf_counter() - start
+
+    peak = peak_memory_mib(run, device)
+    return record["seconds"], peak, record["result"]
+
+
+def scale_cube_case(
+    gs: GaussianSet, grid: VoxelGrid, device: torch.device, repeats: int, skip_dense: bool
+) -> None:
+    """Section 3: the scale cube (k = 3) vs the dense evaluation, forward and backward."""
+
+    def ours() -> object:
+        return voxelize(gs, grid, neighborhood="scale_cube", scale_multiplier=3)
+
+    print("3. scale_cube, k=3 (GaussianFormer's per-Gaussian cube)")
+    with torch.no_grad():
+        t_ours = median_seconds(ours, device, repeats=repeats, warmup=1)
+        row("dego voxelize(scale_cube, k=3), forward", t_ours, peak_memory_mib(ours, device))
+        if not skip_dense:
+            t_dense, peak, (density, _) = timed_once(lambda: dense(gs, grid), device)
+            diff = float((ours().density[0].double() - density).abs().max())
+            note = f"speed-up {t_dense / t_ours:.1f}x, max |density diff| {diff:.1e} (cube cut)"
+            row("dense (every Gaussian x voxel, chunked GEMM)", t_dense, peak, note)
+    run = backward_of(gs, grid, neighborhood="scale_cube", scale_multiplier=3)
+    t = median_seconds(run, device, repeats=repeats, warmup=1)
+    row("dego voxelize(scale_cube, k=3), forward+backward", t, peak_memory_mib(run, device))
+
+
+def backward_of(gs: GaussianSet, grid: VoxelGrid, **kw: object) -> Callable[[], None]:
+    """One forward + backward of voxelize on fresh leaves (a scalar loss of both outputs)."""
+
+    def run() -> None:
+        leaves = [
+            t.detach().clone().requires_grad_()
+            for t in (gs.means, gs.quats, gs.scales, gs.opacities, gs.features)
+        ]
+        out = voxelize(GaussianSet(*leaves), grid, **kw)
+        (out.density.sum() + out.features.square().mean()).backward()
+
+    return run
+
+
 def main() -> None:
     parser = benchmark_parser(__doc__, repeats=3)
     parser.add_argument("--skip-dense", action="store_true")
     parser.add_argument("--precision", action="store_true", help="float32 accuracy, no timing")
-    parser.add_argument("--n", type=int, default=10_000, help="Gaussians (--precision)")
+    parser.add_argument("--n", type=int, default=10_000, help="Gaussians (default 10,000)")
+    parser.add_argument("--only", choices=("all", "cube", "ellipsoid", "scale_cube"), default="all")
     args = parser.parse_args()
     if args.precision:
         precision_report(args.n)
         return
     device = torch.device(args.device)
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}")
+    print(
+        f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}, "
+        f"N = {args.n}"
+    )
     grid = VoxelGrid.occ3d()
-    gs = occ3d_gaussians(10_000, 16).to(device)
+    gs = occ3d_gaussians(args.n, 16).to(device)
+    if args.only in ("all", "cube"):
+        cube_case(gs, grid, device, args.repeats)
+    if args.only in ("all", "ellipsoid"):
+        ellipsoid_case(gs, grid, device, args.repeats, args.skip_dense)
+    if args.only in ("all", "scale_cube"):
+        scale_cube_case(gs, grid, device, args.repeats, args.skip_dense)
+
+
+def cube_case(gs: GaussianSet, grid: VoxelGrid, device: torch.device, repeats: int) -> None:
+    """Section 1: the official cube vs the official algorithm."""
 
     def ours_cube() -> object:
         return voxelize(gs, grid, neighborhood="cube", nbh=5)
 
-    def ours_ellipsoid() -> object:
-        return voxelize(gs, grid)
-
-    def backward_of(**kw: object):
-        def run() -> None:
-            leaves = [
-                t.detach().clone().requires_grad_()
-                for t in (gs.means, gs.quats, gs.scales, gs.opacities, gs.features)
-            ]
-            out = voxelize(GaussianSet(*leaves), grid, **kw)
-            (out.density.sum() + out.features.square().mean()).backward()
-
-        return run
-
     print("1. cube, nbh=5 (11^3 voxels per Gaussian), forward")
     with torch.no_grad():
-        t_ours = median_seconds(ours_cube, device, repeats=args.repeats, warmup=1)
+        t_ours = median_seconds(ours_cube, device, repeats=repeats, warmup=1)
         row("dego voxelize(cube, nbh=5)", t_ours, peak_memory_mib(ours_cube, device))
         if device.type == "cpu":
             t_official = median_seconds(
@@ -200,22 +259,27 @@ def main() -> None:
                 peak_memory_mib(lambda: official_cube(gs, grid, 5), device),
                 f"speed-up {t_official / t_ours:.1f}x, max |diff| {diff:.1e}",
             )
-    t = median_seconds(
-        backward_of(neighborhood="cube", nbh=5), device, repeats=args.repeats, warmup=1
-    )
-    row(
-        "dego voxelize(cube, nbh=5), forward+backward",
-        t,
-        peak_memory_mib(backward_of(neighborhood="cube", nbh=5), device),
-    )
+    run = backward_of(gs, grid, neighborhood="cube", nbh=5)
+    t = median_seconds(run, device, repeats=repeats, warmup=1)
+    row("dego voxelize(cube, nbh=5), forward+backward", t, peak_memory_mib(run, device))
+
+
+def ellipsoid_case(
+    gs: GaussianSet, grid: VoxelGrid, device: torch.device, repeats: int, skip_dense: bool
+) -> None:
+    """Section 2: the exact 3-sigma ellipsoid boxes vs the dense evaluation."""
+
+    def ours_ellipsoid() -> object:
+        return voxelize(gs, grid)
 
     print("2. ellipsoid, k=3")
     with torch.no_grad():
-        t_ell = median_seconds(ours_ellipsoid, device, repeats=args.repeats, warmup=1)
+        t_ell = median_seconds(ours_ellipsoid, device, repeats=repeats, warmup=1)
         row("dego voxelize(ellipsoid), forward", t_ell, peak_memory_mib(ours_ellipsoid, device))
-    t = median_seconds(backward_of(), device, repeats=args.repeats, warmup=1)
-    row("dego voxelize(ellipsoid), forward+backward", t, peak_memory_mib(backward_of(), device))
-    if not args.skip_dense and device.type == "cpu":
+    run = backward_of(gs, grid)
+    t = median_seconds(run, device, repeats=repeats, warmup=1)
+    row("dego voxelize(ellipsoid), forward+backward", t, peak_memory_mib(run, device))
+    if not skip_dense and device.type == "cpu":
         with torch.no_grad():
             start = time.perf_counter()
             dense_density, _ = dense(gs, grid)  # one run: it takes minutes

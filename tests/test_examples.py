@@ -22,6 +22,7 @@ ARGUMENTS: dict[str, list[str]] = {
         *("--steps", "3", "--scenes", "2", "--val-scenes", "1", "--frames", "1"),
         *("--device", "cpu", "--out", TMP),
     ],
+    "porting.py": ["--gaussians", "1500"],
     "fit_scene.py": ["--iterations", "3", "--gaussians", "400", "--frames", "2", "--out", TMP],
 }
 # Scripts started by a launcher instead of plain `python`.

@@ -422,7 +422,10 @@ def test_bad_shapes_and_dtypes() -> None:
         ({"num_classes": 1}, "num_classes"),
         ({"protocol": "occ3d", "free_label": 18}, "free_label"),
         ({"ignore_label": 3}, "ignore_label: 3 collides"),
-        ({"protocol": "weak", "num_classes": 24, "free_label": 23}, "'weak' is defined on the 18"),
+        (
+            {"protocol": "weak", "num_classes": 24, "free_label": 23},
+            "'weak' is defined on 18 labels",
+        ),
         ({"groups": {"x": [40]}}, "groups: group 'x'"),
     ],
 )
@@ -449,3 +452,35 @@ def test_a_refused_state_dict_leaves_the_counts_untouched() -> None:
     with pytest.raises(ValueError, match="configuration"):
         occ3d.load_state_dict(weak.state_dict())
     assert torch.equal(occ3d.confusion, before[0]) and torch.equal(occ3d.geometric, before[1])
+
+
+@given(st.integers(0, 10_000), st.floats(0.0, 0.9))
+def test_surroundocc_protocol_matches_gaussianformers_recipe(seed: int, noise: float) -> None:
+    """GaussianFormer's MeanIoU on SurroundOcc labels: voxels whose gt is 0 (noise) are
+    dropped, IoU_c = correct / (seen + predicted - correct) for c in 1..16, mIoU their mean;
+    the geometric IoU is occupied (not 17) vs free on the same voxels. (GaussianFormer gives
+    a class without gt voxels an IoU of 1; here every class has gt voxels.)"""
+    rng = np.random.default_rng(seed)
+    gt = rng.integers(0, 18, (12, 12, 8))
+    gt.reshape(-1)[:18] = np.arange(18)  # every label occurs
+    pred = np.where(rng.random(gt.shape) < noise, rng.integers(0, 18, gt.shape), gt)
+    metrics = OccupancyMetrics("surroundocc")
+    metrics.update(torch.from_numpy(pred), torch.from_numpy(gt))
+    report = metrics.compute()
+    keep = gt != 0
+    p, g = pred[keep], gt[keep]
+    ious = []
+    for c in range(1, 17):
+        correct = np.sum((p == c) & (g == c))
+        ious.append(correct / (np.sum(g == c) + np.sum(p == c) - correct))
+    assert report.evaluated_classes == tuple(range(1, 17)) == PROTOCOL_CLASSES["surroundocc"]
+    assert report.miou == pytest.approx(float(np.mean(ious)), abs=1e-12)
+    occupied_tp = np.sum((p != 17) & (g != 17))
+    union = np.sum((p != 17) | (g != 17))
+    assert report.iou == pytest.approx(occupied_tp / union, abs=1e-12)
+    assert int(metrics.confusion[0].sum()) == 0  # noise voxels are not counted
+
+
+def test_surroundocc_protocol_needs_the_18_labels() -> None:
+    with pytest.raises(ValueError, match="'surroundocc' is defined on 18 labels"):
+        OccupancyMetrics("surroundocc", num_classes=20, free_label=19)

@@ -5,7 +5,8 @@ Written from the maths of the voxelizer's contract, not from its code:
 * :func:`dense_voxelize` evaluates every Gaussian at every voxel centre (small grids only),
   ``g_i(x) = exp(-0.5 d^T P_i d)`` with ``d = x - mu_i``, optionally multiplied by a
   per-(Gaussian, voxel) inclusion mask that expresses a neighbourhood rule
-  (:func:`ellipsoid_box_mask`, :func:`cube_mask`).
+  (:func:`ellipsoid_box_mask`, :func:`cube_mask`, :func:`scale_cube_mask`), and with the
+  GaussianFormer options (where opacity enters, the empty-voxel value).
 * :func:`official_cube_voxelize` transcribes the official GaussianFlowOcc / DeGO algorithm:
   candidate voxels ``floor((mu - lower) / voxel) + [-nbh..nbh]^3``, out-of-grid ones
   dropped, one (Gaussian, voxel) pair per candidate with its own copy of the 3x3 precision,
@@ -64,6 +65,28 @@ def cube_mask(nbh: int) -> MaskFn:
     return mask
 
 
+def scale_cube_mask(scale_multiplier: float) -> MaskFn:
+    """GaussianFormer's cube: voxels ``idx`` with ``|idx_a - floor((mu_i - lower) / v)_a|
+    <= max(1, ceil(k max(s_i) / v_a))`` on every axis a (all voxels for k = inf)."""
+
+    def mask(gaussians: GaussianSet, grid: VoxelGrid) -> Tensor:
+        b, n = gaussians.means.shape[:2]
+        axes = [torch.arange(size, device=gaussians.device) for size in grid.shape]
+        index = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)  # (X, Y, Z, 3)
+        if math.isinf(scale_multiplier):
+            return torch.ones(b, n, *grid.shape, dtype=torch.bool, device=gaussians.device)
+        lower = torch.tensor(grid.lower, dtype=torch.float64, device=gaussians.device)
+        size = torch.tensor(grid.voxel_size, dtype=torch.float64, device=gaussians.device)
+        means = gaussians.means.double()
+        home = torch.floor((means - lower) / size)  # (B, N, 3)
+        largest = gaussians.scales.double().max(dim=-1, keepdim=True).values  # (B, N, 1)
+        radius = torch.ceil(scale_multiplier * largest / size).clamp_min(1)  # (B, N, 3)
+        gap = index[None, None].double() - home[:, :, None, None, None, :]
+        return (gap.abs() <= radius[:, :, None, None, None, :]).all(dim=-1)
+
+    return mask
+
+
 def gaussian_values(gaussians: GaussianSet, grid: VoxelGrid) -> Tensor:
     """``g_i(x)`` of every Gaussian at every voxel centre, ``(B, N, X, Y, Z)``."""
     centres = _centres(gaussians, grid)
@@ -78,12 +101,20 @@ def dense_voxelize(
     features: Tensor | None = None,
     mode: str = "additive",
     mask_fn: MaskFn | None = None,
+    *,
+    feature_weight: str | None = None,
+    opacity_in_density: bool = True,
+    empty_value: float = 0.0,
+    empty_threshold: float = TINY_WEIGHT,
 ) -> tuple[Tensor, Tensor]:
     """``(density (B, X, Y, Z), features (B, X, Y, Z, C))`` by evaluating everything densely.
 
-    additive: density = clamp(sum_i o_i g_i, 0, 1), features = sum_i g_i f_i.
-    probabilistic: density = 1 - prod_i (1 - o_i g_i), features = sum_i p_i f_i / sum_i p_i
-    with p_i = o_i (2 pi)^(-3/2) sqrt(det P_i) g_i (0 where sum_i p_i <= 1e-30).
+    additive: density = clamp(sum_i a_i g_i, 0, 1), features = sum_i w_i f_i with w_i = g_i.
+    probabilistic: density = 1 - prod_i (1 - a_i g_i), features = sum_i w_i f_i / sum_i w_i
+    with w_i = o_i (2 pi)^(-3/2) sqrt(det P_i) g_i.
+    a_i = o_i, or 1 with ``opacity_in_density=False``; ``feature_weight="kernel"`` drops o_i
+    from w_i, ``"opacity_kernel"`` puts it in (None: the mode's default, as above). Features
+    are ``empty_value`` where sum_i w_i <= ``empty_threshold``.
     """
     b, n = gaussians.means.shape[:2]
     if features is None:
@@ -94,19 +125,29 @@ def dense_voxelize(
     if mask_fn is not None:
         g = g * mask_fn(gaussians, grid).to(g.dtype)
     opacities = gaussians.opacities[:, :, None, None, None]
-    if mode == "additive":
-        density = (opacities * g).sum(dim=1).clamp(0, 1)
-        return density, torch.einsum("bnxyz,bnc->bxyzc", g, features)
-    if mode != "probabilistic":
+    if mode not in ("additive", "probabilistic"):
         raise ValueError(f"unknown mode {mode!r}")
-    density = 1 - torch.prod(1 - opacities * g, dim=1)
+    with_opacity = (
+        mode == "probabilistic" if feature_weight is None else (feature_weight == "opacity_kernel")
+    )
+    occupancy = opacities * g if opacity_in_density else g
+    fill = g.new_full((b, *grid.shape, 1), empty_value)
+    if mode == "additive":
+        density = occupancy.sum(dim=1).clamp(0, 1)
+        w = opacities * g if with_opacity else g
+        total = w.sum(dim=1)
+        summed = torch.einsum("bnxyz,bnc->bxyzc", w, features)
+        return density, torch.where((total > empty_threshold).unsqueeze(-1), summed, fill)
+    density = 1 - torch.prod(1 - occupancy, dim=1)
     normaliser = (2 * math.pi) ** -1.5 * torch.linalg.det(gaussians.precisions()).sqrt()
-    p = opacities * normaliser[:, :, None, None, None] * g
+    p = normaliser[:, :, None, None, None] * g
+    if with_opacity:
+        p = opacities * p
     total = p.sum(dim=1)
     weighted = torch.einsum("bnxyz,bnc->bxyzc", p, features)
-    safe = total > TINY_WEIGHT
+    safe = total > empty_threshold
     mixed = weighted / torch.where(safe, total, torch.ones_like(total)).unsqueeze(-1)
-    return density, torch.where(safe.unsqueeze(-1), mixed, torch.zeros_like(mixed))
+    return density, torch.where(safe.unsqueeze(-1), mixed, fill)
 
 
 def official_cube_voxelize(

@@ -80,14 +80,16 @@ PROTOCOL_CLASSES: MappingProxyType[str, tuple[int, ...]] = MappingProxyType(
     {
         "occ3d": tuple(range(17)),
         "weak": (*range(1, 12), *range(13, 17)),
+        "surroundocc": tuple(range(1, 17)),
     }
 )
 """Classes averaged into mIoU: ``occ3d`` uses 0..16; ``weak`` (GaussianFlowOcc / DeGO)
-drops others (0) and other_flat (12), leaving 15 classes."""
+drops others (0) and other_flat (12), leaving 15 classes; ``surroundocc`` (SurroundOcc's
+labels, as GaussianFormer scores them) uses 1..16, where label 0 is noise."""
 
 
 def protocol_classes(protocol: str) -> tuple[int, ...]:
-    """The classes averaged into mIoU under ``protocol`` (``"occ3d"`` or ``"weak"``)."""
+    """The classes averaged into mIoU under ``protocol`` (a key of :data:`PROTOCOL_CLASSES`)."""
     try:
         return PROTOCOL_CLASSES[protocol]
     except KeyError:

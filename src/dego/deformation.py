@@ -10,15 +10,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Literal
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from torch import Tensor, nn
 
 from dego._checks import check_int, check_positive
 from dego._policy import check_finite_with
 from dego._typing import typechecked
+from dego.deformation_checkpoint import (
+    OFFICIAL_CHECKPOINT_PREFIX,
+    StateDictMismatchError,
+    export_official_state_dict,
+    load_official_state_dict,
+)
 from dego.encoding import positional_encoding
 from dego.gaussians import GaussianSet, _normalize, quaternion_multiply
 from dego.grid import VoxelGrid
@@ -94,6 +101,8 @@ class DeformationOutput:
             (``official``: the same tensor as ``rigid_offsets``).
         preset: the preset that produced it; :func:`deformation_loss` follows it.
         loss_weights: the module's default loss weights.
+        canonical_last: ``True`` for the result of :meth:`with_canonical`: the last time
+            step is the undeformed canonical set, which :func:`deformation_loss` leaves out.
     """
 
     gaussians: GaussianSet
@@ -103,6 +112,7 @@ class DeformationOutput:
     nonrigid_offsets: Float[Tensor, "B T N 3"]
     preset: Preset
     loss_weights: DeformationLossWeights
+    canonical_last: bool = False
 
     @property
     def num_times(self) -> int:
@@ -114,6 +124,158 @@ class DeformationOutput:
         if isinstance(t_index, bool) or not isinstance(t_index, int) or not -t <= t_index < t:
             raise IndexError(f"t_index: expected an int in [{-t}, {t}), got {t_index!r}")
         return self.gaussians._map(lambda _, v: v[:, t_index])
+
+    def _check_canonical(self, name: str, canonical: GaussianSet) -> None:
+        deformed = self.gaussians
+        b, n = deformed.batch_shape[0], deformed.num_gaussians
+        if tuple(canonical.batch_shape) != (b,) or canonical.num_gaussians != n:
+            raise ValueError(
+                f"{name}: expected the canonical set of batch shape ({b},) with N = {n} "
+                f"Gaussians, got batch shape {tuple(canonical.batch_shape)} with N = "
+                f"{canonical.num_gaussians}"
+            )
+        if canonical.dtype != deformed.dtype or canonical.device != deformed.device:
+            raise ValueError(
+                f"{name}: expected {deformed.dtype} on {deformed.device} like the output, got "
+                f"{canonical.dtype} on {canonical.device}"
+            )
+        if canonical.feature_dim != deformed.feature_dim:
+            raise ValueError(
+                f"{name}: feature_dim {canonical.feature_dim} differs from the deformed sets' "
+                f"{deformed.feature_dim} (features are carried unchanged, so both or neither "
+                "have them)"
+            )
+
+    @typechecked
+    def to_official_dict(self, *, losses: bool = False) -> dict[str, Tensor]:
+        """The official DeGO deformation module's return value, from this output.
+
+        Keys and layouts of ``GaussianDeformationMaskStaticRigid.forward``: ``"means"``
+        ``(B, N, T, 3)``, ``"rotations"`` ``(B, N, T, 4)``, ``"scales"`` ``(B, N, T, 3)``,
+        ``"opacity"`` ``(B, N, T, 1)`` (Gaussian axis before time, opacity with a trailing
+        1; contiguous copies of ``gaussians``). The official module does not return its mask.
+
+        Args:
+            losses: also return the official module's training losses
+                ``"deformation_reg_loss"`` (``deformation_loss``'s ``reg`` with every
+                lambda_p = 1) and ``"rigid_non_rigid_loss"`` (its ``mask``), unweighted
+                scalars; ``official`` preset only. (The official module returns zeros for
+                both in eval mode.) A :meth:`with_canonical` output's canonical step is
+                left out, as the official module computes them before the detector appends it.
+        """
+        if not isinstance(losses, bool):
+            raise TypeError(f"losses: expected a bool, got {type(losses).__name__}")
+        g = self.gaussians
+        result = {
+            "means": g.means.transpose(1, 2).contiguous(),
+            "rotations": g.quats.transpose(1, 2).contiguous(),
+            "scales": g.scales.transpose(1, 2).contiguous(),
+            "opacity": g.opacities.transpose(1, 2)[..., None].contiguous(),
+        }
+        if losses:
+            if self.preset != "official":
+                raise ValueError(
+                    f"losses: the official losses need an 'official' preset output, got preset "
+                    f"{self.preset!r} (use deformation_loss for its own losses)"
+                )
+            terms = deformation_loss(self, DeformationLossWeights())
+            result["deformation_reg_loss"] = terms["reg"]
+            result["rigid_non_rigid_loss"] = terms["mask"]
+        return result
+
+    @typechecked
+    def with_canonical(self, gaussians: GaussianSet) -> DeformationOutput:
+        """This output with the canonical set appended as the last time step (T + 1 steps).
+
+        The official training loop renders T deformed frames plus the undeformed canonical
+        set as the current frame, last (8 + 1 = 9 frames). The appended step carries the
+        values that mean "no deformation": zero deltas and zero raw offsets, and
+        (``official``, whose mask is per time step) mask 0, the only mask value for which
+        the update rule gives back the canonical set whatever the shape heads predict; the
+        ``paper`` mask ``(B, N)`` is per Gaussian and unchanged. :func:`deformation_loss`
+        leaves the appended step out, so the losses do not change.
+
+        Args:
+            gaussians: the canonical set that was deformed, batch shape ``(B,)``, same N,
+                dtype, device and ``feature_dim`` as the output.
+        """
+        if self.canonical_last:
+            raise ValueError(
+                "gaussians: this output already ends with its canonical set (with_canonical "
+                "was applied twice)"
+            )
+        self._check_canonical("gaussians", gaussians)
+
+        def append_zeros(value: Tensor) -> Tensor:
+            return torch.cat([value, value.new_zeros(value[:, :1].shape)], 1)
+
+        extended = self.gaussians._map(
+            lambda name, value: torch.cat([value, getattr(gaussians, name)[:, None]], 1)
+        )
+        rigid = append_zeros(self.rigid_offsets)
+        shared = self.nonrigid_offsets is self.rigid_offsets
+        return dataclasses.replace(
+            self,
+            gaussians=extended,
+            rigid_mask=self.rigid_mask
+            if self.rigid_mask.ndim == 2
+            else append_zeros(self.rigid_mask),
+            deltas=DeformationDeltas(
+                *(append_zeros(getattr(self.deltas, name)) for name in PARAMETERS)  # type: ignore[arg-type]
+            ),
+            rigid_offsets=rigid,
+            nonrigid_offsets=rigid if shared else append_zeros(self.nonrigid_offsets),
+            canonical_last=True,
+        )
+
+    @typechecked
+    def gated(self, keep: Bool[Tensor, "B N"], canonical: GaussianSet) -> DeformationOutput:
+        """This output with the Gaussians where ``keep`` is False left undeformed.
+
+        Those Gaussians get their canonical parameters at every time step, zero deltas,
+        zero raw offsets and mask 0 (as in :meth:`with_canonical`); the others are
+        unchanged. GaussianFlowOcc's class gating is ``gated(is_dynamic, canonical)``; see
+        :func:`gate_by_class`.
+
+        Args:
+            keep: ``(B, N)`` bool, True where a Gaussian may deform.
+            canonical: the canonical set that was deformed, batch shape ``(B,)``.
+        """
+        self._check_canonical("canonical", canonical)
+        b, n = self.gaussians.batch_shape[0], self.gaussians.num_gaussians
+        if tuple(keep.shape) != (b, n) or keep.device != self.gaussians.device:
+            raise ValueError(
+                f"keep: expected shape ({b}, {n}) on {self.gaussians.device}, got "
+                f"{tuple(keep.shape)} on {keep.device}"
+            )
+        per_step = keep[:, None]  # (B, 1, N)
+
+        def gate(value: Tensor, fallback: Tensor | float) -> Tensor:
+            k = per_step if value.ndim == 3 else per_step[..., None]
+            return torch.where(k, value, fallback)
+
+        gaussians = self.gaussians._map(
+            lambda name, value: (
+                value if name == "features" else gate(value, getattr(canonical, name)[:, None])
+            )
+        )
+        mask = (
+            torch.where(keep, self.rigid_mask, 0.0)
+            if self.rigid_mask.ndim == 2
+            else gate(self.rigid_mask, 0.0)
+        )
+        rigid = gate(self.rigid_offsets, 0.0)
+        shared = self.nonrigid_offsets is self.rigid_offsets
+        return dataclasses.replace(
+            self,
+            gaussians=gaussians,
+            rigid_mask=mask,
+            deltas=DeformationDeltas(
+                *(gate(getattr(self.deltas, name), 0.0) for name in PARAMETERS)  # type: ignore[arg-type]
+            ),
+            rigid_offsets=rigid,
+            nonrigid_offsets=rigid if shared else gate(self.nonrigid_offsets, 0.0),
+        )
 
 
 def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
@@ -189,6 +351,8 @@ class DecoupledDeformation(nn.Module):
         8. :func:`deformation_loss`: ``mean((p' - p)^2)`` over all elements, L_mask on the
            last time step's mask only.
 
+        Released weights load with :meth:`from_official_state_dict`.
+
     Args:
         feature_dim: C_g, channels of the per-Gaussian latent features.
         pos_levels: L_p (6), frequency levels of the position encoding.
@@ -203,8 +367,9 @@ class DecoupledDeformation(nn.Module):
         loss_weights: default :class:`DeformationLossWeights` of :func:`deformation_loss`.
         fixed_mask: ``None`` (default): m is learned. A number in [0, 1]: m is that constant
             for every Gaussian and time and the mask head is unused; ``0.0`` gives the
-            rigid-only baseline (position offsets only, as in GaussianFlowOcc), ``1.0`` a
-            nonrigid-only model.
+            rigid-only baseline (position offsets only, as in GaussianFlowOcc; add its class
+            gating with :func:`gate_by_class`, or use :class:`TemporalOffsetNetwork`),
+            ``1.0`` a nonrigid-only model.
         chunk_rows: about how many (Gaussian, time) rows the feature net and heads process
             at a time (Gaussians are chunked, every chunk covers all T); a speed knob
             only: results agree to floating-point rounding. ``None``: 4096 on CPU, where
@@ -469,6 +634,89 @@ class DecoupledDeformation(nn.Module):
         )
         return self._output(gaussians, deformed, mask, deltas, raw)
 
+    @typechecked
+    def to_official_state_dict(self, prefix: str = "") -> dict[str, Tensor]:
+        """This module's weights as a state dict of the official DeGO deformation module.
+
+        The official ``GaussianDeformationMaskStaticRigid`` (``use_static_mask=False``, the
+        released configuration) with ``in_channels=feature_dim``, ``hidden_dim``,
+        ``depth``, ``time_channels=time_dim``, ``pos_enc_levels=pos_levels``,
+        ``time_enc_levels=time_levels`` loads it with ``load_state_dict`` and then computes
+        what this module computes. The exact inverse of :meth:`from_official_state_dict`;
+        the tensors are detached (the first layer's weight is a new concatenation).
+
+        Args:
+            prefix: prepended to every key, e.g. :data:`OFFICIAL_CHECKPOINT_PREFIX` to
+                splice the result into a detector checkpoint (a missing trailing ``"."`` is
+                added).
+
+        Raises:
+            ValueError: the ``paper`` preset (a different network) or ``head_hidden`` other
+                than ``hidden_dim`` (the official heads are ``hidden_dim`` wide).
+
+        Warns:
+            UserWarning: ``time_scale``, ``pos_scale`` other than 1 or a ``fixed_mask``: the
+                official module has no such setting and will compute something else.
+        """
+        return export_official_state_dict(self, prefix)
+
+    @classmethod
+    @typechecked
+    def from_official_state_dict(
+        cls,
+        state_dict: Mapping[str, Any],
+        *,
+        prefix: str = "",
+        strict: bool = True,
+        **kwargs: Any,
+    ) -> DecoupledDeformation:
+        """An ``official`` preset module with the official DeGO deformation network's weights.
+
+        Reads the state dict of ``GaussianDeformationMaskStaticRigid`` (DeGO's
+        ``deformation_mask_static_rigid_new_fully_spv.py``, as released:
+        ``use_static_mask=False``, ``use_rigid_mask=True``, every ``deform_*`` on); the
+        module returned computes the official forward's deformed means, rotations, scales,
+        opacities and mask for the same inputs (times as the official frame indices).
+
+        ``feature_dim``, ``hidden_dim``, ``depth``, ``time_dim``, ``pos_levels`` and
+        ``time_levels`` are read from the shapes (``head_hidden`` = ``hidden_dim``, as in the
+        official heads); any of them given in ``kwargs`` is used instead, and the state
+        dict is checked against it. The official first layer ``feature_net.0`` (on
+        ``[f, PE(mu), e_t]``) is split column-wise into ``input_static`` and
+        ``input_time``; ``rigid_mask_head`` -> ``mask_head``, ``position_head`` ->
+        ``heads.rigid_offset``, ``rotation_head``/``scale_head``/``opacity_head`` ->
+        ``heads.rotation``/``scale``/``opacity``, ``time_embed`` -> ``time_embedding``,
+        ``feature_net.{2j}`` -> ``trunk.{2j - 2}``. The buffers ``pos_enc_freqs`` and
+        ``time_enc_freqs`` must hold ``2^k`` (they fix the levels; nothing is loaded).
+
+        Args:
+            state_dict: the official module's ``state_dict()``, a detector's (select it with
+                ``prefix``), or a whole checkpoint dict whose ``"state_dict"`` entry is one.
+            prefix: only keys starting with it are read, with it removed; the released
+                detector's is :data:`OFFICIAL_CHECKPOINT_PREFIX`
+                (``"gaussian_decoder.deformation_module."``). A missing trailing ``"."`` is
+                added. With the default ``""`` every key must belong to the module.
+            strict: ``True``: any missing, unexpected or mis-shaped key (or a frequency
+                buffer that is not ``2^k``) raises :class:`StateDictMismatchError` listing
+                them all. ``False``: load the keys that fit and warn (``UserWarning``) with
+                the list of the others; parameters not loaded keep their initialisation.
+            kwargs: other :class:`DecoupledDeformation` arguments (``time_scale``,
+                ``pos_scale``, ``fixed_mask``, ``loss_weights``, ``chunk_rows``, the sizes
+                above); ``preset`` may only be ``"official"``. The defaults reproduce the
+                official module; other ``time_scale``, ``pos_scale`` or ``fixed_mask``
+                values change what it computes.
+
+        Returns:
+            The module, on the device and in the dtype of the state dict's
+            ``feature_net.0.weight``.
+
+        Raises:
+            StateDictMismatchError: (a ``KeyError`` and ``ValueError``) keys do not match in
+                strict mode, or the sizes cannot be inferred.
+            TypeError: ``state_dict`` is not a mapping, ``prefix`` not a str.
+        """
+        return load_official_state_dict(cls, state_dict, prefix, strict, kwargs)
+
     def extra_repr(self) -> str:
         return (
             f"feature_dim={self.feature_dim}, preset={self.preset!r}, "
@@ -492,31 +740,36 @@ def deformation_loss(
     over (B, T, N) of the squared norm; ``official``: mean over every element);
     ``mask = mean(m (1 - m))`` (``official``: the last time step's mask only);
     ``total = weights.reg * reg + weights.mask * mask``. ``weights`` defaults to
-    ``output.loss_weights``.
+    ``output.loss_weights``. The canonical step of a
+    :meth:`DeformationOutput.with_canonical` output is left out.
     """
     weights = output.loss_weights if weights is None else weights
     official = output.preset == "official"
+    steps = slice(None, -1) if output.canonical_last else slice(None)
     reg = output.deltas.means.new_zeros(())
     for name in PARAMETERS:
-        delta = getattr(output.deltas, name)
+        delta = getattr(output.deltas, name)[:, steps]
         if official:
             term = _mean(delta.square())
         else:
             squared = delta.square()
             term = _mean(squared if name == "opacities" else squared.sum(-1))
         reg = reg + getattr(weights, name) * term
-    m = output.rigid_mask[:, -1] if official else output.rigid_mask
+    m = output.rigid_mask if output.rigid_mask.ndim == 2 else output.rigid_mask[:, steps]
+    m = m[:, -1] if official else m
     mask = _mean(m * (1 - m))
     return {"reg": reg, "mask": mask, "total": weights.reg * reg + weights.mask * mask}
 
 
 __all__ = [
     "MAX_LOG_SCALE_CHANGE",
+    "OFFICIAL_CHECKPOINT_PREFIX",
     "PARAMETERS",
     "DecoupledDeformation",
     "DeformationDeltas",
     "DeformationLossWeights",
     "DeformationOutput",
+    "StateDictMismatchError",
     "deformation_loss",
     "quaternion_multiply",
     "shift_opacity_logit",

@@ -115,6 +115,12 @@ class VoxelGrid:
         """The Occ3D-nuScenes grid: [-40, -40, -1] to [40, 40, 5.4] m at 0.4 m, (200, 200, 16)."""
         return cls((-40.0, -40.0, -1.0), (40.0, 40.0, 5.4), 0.4)
 
+    @classmethod
+    def surroundocc(cls) -> VoxelGrid:
+        """The SurroundOcc-nuScenes grid (GaussianFormer's): [-50, -50, -5] to [50, 50, 3] m
+        at 0.5 m, (200, 200, 16)."""
+        return cls((-50.0, -50.0, -5.0), (50.0, 50.0, 3.0), 0.5)
+
     @property
     def shape(self) -> tuple[int, int, int]:
         """Number of voxels ``(X, Y, Z)`` along x, y, z."""

@@ -1,10 +1,14 @@
 """Gaussians -> voxel grids: exact, chunked Gaussian-to-voxel splatting.
 
 Each Gaussian is evaluated only at the voxel centres of its neighbourhood: the exact
-axis-aligned box of its ``cutoff_sigma`` ellipsoid (``"ellipsoid"``), or the official
-fixed ``(2 nbh + 1)^3`` cube around its voxel (``"cube"``). (Gaussian, voxel) pairs are
-generated a bounded number at a time (``searchsorted`` over the running pair count, so a
-chunk may split a Gaussian's box) and reduced into the grid with ``index_add_``.
+axis-aligned box of its ``cutoff_sigma`` ellipsoid (``"ellipsoid"``), the official
+fixed ``(2 nbh + 1)^3`` cube around its voxel (``"cube"``), or GaussianFormer's cube of
+``ceil(k max(scale) / voxel)`` voxels around its voxel (``"scale_cube"``). (Gaussian, voxel)
+pairs of the box neighbourhoods are generated a bounded number at a time (``searchsorted``
+over the running pair count, so a chunk may split a Gaussian's box) and reduced into the
+grid with ``index_add_``. ``feature_weight``, ``opacity_in_density``, ``empty_value`` and
+``empty_threshold`` select the GaussianFormer variants of the aggregation
+(:mod:`dego.compat.gaussianformer` wraps them).
 
 Input policy (see :mod:`dego._policy`): non-finite values, scales <= 0, zero-norm
 quaternions and opacities outside [0, 1] raise ``ValueError`` naming the field; box
@@ -31,9 +35,13 @@ from dego.gaussians import QUATERNION_EPS, GaussianSet, _gram_of_scaled_rotation
 from dego.grid import VoxelGrid
 
 Mode = Literal["additive", "probabilistic"]
-Neighborhood = Literal["ellipsoid", "cube"]
+Neighborhood = Literal["ellipsoid", "cube", "scale_cube"]
+FeatureWeight = Literal["kernel", "opacity_kernel"]
 
-_TINY_WEIGHT = 1e-30
+_TINY_WEIGHT = 1e-30  # default empty_threshold
+# log(1 - x) used for a saturated pair (x = 1: the voxel is certainly occupied); exp of it
+# is exactly 0 in float32 and float64, and sums of it stay finite.
+_SATURATED_LOG = -1e4
 # Additive cube mode skips (Gaussian, voxel) pairs with exp(-q/2) < 1e-10, i.e. q > 2 * 23.03;
 # the skipped total per voxel is below (2 nbh + 1)^3 * 1e-10 (1.3e-7 for nbh = 5) times the
 # largest |opacity| or |feature|.
@@ -102,14 +110,21 @@ class VoxelizerConfig:
     cutoff_sigma: float = 3.0
     nbh: int | None = None
     chunk_size: int = 1 << 21
+    scale_multiplier: float | None = None
+    feature_weight: FeatureWeight | None = None
+    opacity_in_density: bool = True
+    empty_value: float = 0.0
+    empty_threshold: float = _TINY_WEIGHT
 
     def __post_init__(self) -> None:
         if self.mode not in ("additive", "probabilistic"):
             raise ValueError(f"mode: expected 'additive' or 'probabilistic', got {self.mode!r}")
-        if self.neighborhood not in ("ellipsoid", "cube"):
+        if self.neighborhood not in ("ellipsoid", "cube", "scale_cube"):
             raise ValueError(
-                f"neighborhood: expected 'ellipsoid' or 'cube', got {self.neighborhood!r}"
+                "neighborhood: expected 'ellipsoid', 'cube' or 'scale_cube', got "
+                f"{self.neighborhood!r}"
             )
+        self._check_gaussianformer_options()
         k = self.cutoff_sigma
         if isinstance(k, bool) or not isinstance(k, int | float) or not k > 0:  # NaN fails
             raise ValueError(
@@ -126,6 +141,52 @@ class VoxelizerConfig:
             or self.chunk_size < 1
         ):
             raise ValueError(f"chunk_size: expected a positive int, got {self.chunk_size!r}")
+
+    def _check_gaussianformer_options(self) -> None:
+        k = self.scale_multiplier
+        if self.neighborhood == "scale_cube":
+            if k is None:
+                raise ValueError(
+                    "scale_multiplier: required with neighborhood='scale_cube' "
+                    "(GaussianFormer: 3, GaussianFormer-2: 4)"
+                )
+            if isinstance(k, bool) or not isinstance(k, int | float) or not k > 0:  # NaN fails
+                raise ValueError(
+                    f"scale_multiplier: expected a positive number (inf: the whole grid), got {k!r}"
+                )
+        elif k is not None:
+            raise ValueError(
+                f"scale_multiplier: only used with neighborhood='scale_cube', got {k!r} with "
+                f"neighborhood={self.neighborhood!r}"
+            )
+        if self.feature_weight not in (None, "kernel", "opacity_kernel"):
+            raise ValueError(
+                "feature_weight: expected None, 'kernel' or 'opacity_kernel', got "
+                f"{self.feature_weight!r}"
+            )
+        if not isinstance(self.opacity_in_density, bool):
+            raise ValueError(
+                f"opacity_in_density: expected True or False, got {self.opacity_in_density!r}"
+            )
+        value = self.empty_value
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not math.isfinite(value)
+        ):
+            raise ValueError(f"empty_value: expected a finite number, got {value!r}")
+        t = self.empty_threshold
+        if isinstance(t, bool) or not isinstance(t, int | float) or not 0 <= t < math.inf:
+            raise ValueError(f"empty_threshold: expected a finite number >= 0, got {t!r}")
+
+    @property
+    def opacity_weights_features(self) -> bool:
+        """Whether the feature weight includes the opacity: ``feature_weight`` if given,
+        else ``False`` in additive mode (``sum g f``) and ``True`` in probabilistic mode
+        (mixture weight ``o N``)."""
+        if self.feature_weight is None:
+            return self.mode == "probabilistic"
+        return self.feature_weight == "opacity_kernel"
 
 
 def _check_values(fields: dict[str, Tensor]) -> None:
@@ -194,6 +255,22 @@ def _check_size(
     )
 
 
+def _grid_float64(grid: VoxelGrid, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """The grid's lower corner, voxel size and largest index per axis, float64 ``(3,)``."""
+    lower = torch.tensor(grid.lower, dtype=torch.float64, device=device)
+    size = torch.tensor(grid.voxel_size, dtype=torch.float64, device=device)
+    top = torch.tensor(grid.shape, dtype=torch.float64, device=device) - 1
+    return lower, size, top
+
+
+def _clip_to_grid(low: Tensor, high: Tensor, top: Tensor) -> tuple[Tensor, Tensor]:
+    """Float64 index ranges clamped to ``[-1, shape]`` before the int64 conversion (no
+    overflow whatever their size; empty where high < low)."""
+    low = torch.minimum(low.clamp_min(0), top + 1)
+    high = torch.minimum(high.clamp_min(-1), top)
+    return low.long(), high.long()
+
+
 def _ellipsoid_boxes(
     means: Tensor,  # (M, 3)
     rotations: Tensor,  # (M, 3, 3)
@@ -209,10 +286,7 @@ def _ellipsoid_boxes(
     conversion, so huge scales, huge ``cutoff_sigma`` (``inf``: the whole grid) or far
     means never overflow int64.
     """
-    device = means.device
-    lower = torch.tensor(grid.lower, dtype=torch.float64, device=device)
-    size = torch.tensor(grid.voxel_size, dtype=torch.float64, device=device)
-    top = torch.tensor(grid.shape, dtype=torch.float64, device=device) - 1
+    lower, size, top = _grid_float64(grid, means.device)
     if math.isinf(cutoff_sigma):
         low = torch.zeros_like(means, dtype=torch.float64)
         high = top.expand_as(low)
@@ -226,9 +300,32 @@ def _ellipsoid_boxes(
         high = torch.floor(position + half - 0.5)
         low = torch.where(low.isnan(), 0.0, low)
         high = torch.where(high.isnan(), top, high)
-    low = torch.minimum(low.clamp_min(0), top + 1)
-    high = torch.minimum(high.clamp_min(-1), top)
-    return low.long(), high.long()
+    return _clip_to_grid(low, high, top)
+
+
+def _scale_cube_boxes(
+    means: Tensor,  # (M, 3)
+    scales: Tensor,  # (M, 3)
+    grid: VoxelGrid,
+    scale_multiplier: float,
+) -> tuple[Tensor, Tensor]:
+    """GaussianFormer's cubes as inclusive per-axis index ranges ``(M, 3)`` low / high:
+    ``floor((mu - lower) / voxel) +- r`` with ``r = max(1, ceil(k max(s) / voxel))`` per
+    axis, clipped to the grid (empty where high < low: cubes wholly outside it).
+
+    Computed in float64 and clamped to ``[-1, shape]`` in floating point before the integer
+    conversion (huge scales or ``k = inf``: the whole grid; far means: no voxel).
+    """
+    lower, size, top = _grid_float64(grid, means.device)
+    if math.isinf(scale_multiplier):
+        low = torch.zeros_like(means, dtype=torch.float64)
+        high = top.expand_as(low)
+    else:
+        home = torch.floor((means.double() - lower) / size)  # finite: means are finite
+        largest = scales.double().amax(-1, keepdim=True)  # (M, 1)
+        radius = torch.ceil(scale_multiplier * largest / size).clamp_min(1)  # may be inf
+        low, high = home - radius, home + radius
+    return _clip_to_grid(low, high, top)
 
 
 def _pair_quadratic(
@@ -251,22 +348,46 @@ def _pair_quadratic(
     return u.square().sum(-1)
 
 
+@dataclasses.dataclass(frozen=True)
+class _Kernel:
+    """Which per-pair terms are summed: the mode and where the opacity enters."""
+
+    probabilistic: bool
+    opacity_features: bool  # feature weight o g / o N (else g / N)
+    opacity_density: bool  # density from o g (else g)
+
+    @classmethod
+    def of(cls, config: VoxelizerConfig) -> _Kernel:
+        return cls(
+            config.mode == "probabilistic",
+            config.opacity_weights_features,
+            config.opacity_in_density,
+        )
+
+
 def _kernel_terms(
     quadratic: Tensor,  # (P,)
     opacity: Tensor,  # (P,) opacity of each pair's Gaussian
     features: Tensor,  # (P, C) features of each pair's Gaussian
     log_normaliser: Tensor,  # (P,) clamped log of (2 pi)^(-3/2) sqrt(det P) of each pair
-    probabilistic: bool,
+    kernel: _Kernel,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-pair density term, feature term and (probabilistic) mixture weight."""
+    """Per-pair density term, feature term and feature weight (additive: ``g`` or ``o g``;
+    probabilistic: the mixture weight ``N`` or ``o N``)."""
     # d^T P d >= 0: rounding below 0 is clamped, NaN (inf - inf: a far pair) counts as far
     quadratic = torch.where(quadratic.isnan(), math.inf, quadratic.clamp_min(0))
     g = torch.exp(-0.5 * quadratic)
-    if not probabilistic:
-        return opacity * g, g.unsqueeze(-1) * features, g.new_zeros(0)
-    # log(1 - o g), kept finite where o g reaches 1 (a single Gaussian then saturates)
-    survival = torch.log1p(-(opacity * g).clamp(max=1 - torch.finfo(g.dtype).eps))
-    weight = opacity * torch.exp(log_normaliser - 0.5 * quadratic)
+    occupancy = opacity * g if kernel.opacity_density else g
+    if not kernel.probabilistic:
+        weight = opacity * g if kernel.opacity_features else g
+        return occupancy, weight.unsqueeze(-1) * features, weight
+    # log(1 - x): kept finite (and its gradient) where x nears 1; x = 1 exactly (o = 1 or
+    # opacity unused, at the mean) saturates the voxel: occupancy exactly 1
+    survival = torch.log1p(-occupancy.clamp(max=1 - torch.finfo(g.dtype).eps))
+    survival = torch.where(occupancy >= 1, _SATURATED_LOG, survival)
+    weight = torch.exp(log_normaliser - 0.5 * quadratic)
+    if kernel.opacity_features:
+        weight = opacity * weight
     return survival, weight.unsqueeze(-1) * features, weight
 
 
@@ -278,12 +399,12 @@ def _pair_terms(
     owner: Tensor,
     centres: Tensor,
     log_normaliser: Tensor,  # (M,)
-    probabilistic: bool,
+    kernel: _Kernel,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_kernel_terms` of the (Gaussian ``owner``, voxel centre) pairs."""
     quadratic = _pair_quadratic(means, whitening, owner, centres)
     return _kernel_terms(
-        quadratic, opacities[owner], features[owner], log_normaliser[owner], probabilistic
+        quadratic, opacities[owner], features[owner], log_normaliser[owner], kernel
     )
 
 
@@ -298,6 +419,11 @@ def voxelize(
     cutoff_sigma: float = 3.0,
     nbh: int | None = None,
     chunk_size: int = 1 << 21,
+    scale_multiplier: float | int | None = None,
+    feature_weight: FeatureWeight | None = None,
+    opacity_in_density: bool = True,
+    empty_value: float | int = 0.0,
+    empty_threshold: float = _TINY_WEIGHT,
 ) -> VoxelOutput:
     """Splat ``(B, N)`` Gaussians into ``grid``: ``g_i(x) = exp(-0.5 d^T P_i d)`` at voxel centres.
 
@@ -307,20 +433,44 @@ def voxelize(
         features: ``(B, N, C)`` in the Gaussians' dtype; defaults to ``gaussians.features``
             (none: C = 0).
         mode: ``"additive"`` (official DeGO / GaussianFlowOcc): density =
-            clamp(sum o_i g_i, 0, 1), features = sum g_i f_i. ``"probabilistic"``
-            (GaussianFormer-2 with opacity): density = 1 - prod(1 - o_i g_i) (in log
-            space), features = sum p_i f_i / sum p_i with p_i = o_i N(x; mu_i, Sigma_i)
-            (0 where the sum vanishes).
+            clamp(sum o_i g_i, 0, 1), features = sum w_i f_i with w_i = g_i.
+            ``"probabilistic"`` (GaussianFormer-2 with opacity): density =
+            1 - prod(1 - o_i g_i) (in log space), features = sum p_i f_i / sum p_i with the
+            mixture weight p_i = o_i N(x; mu_i, Sigma_i).
         neighborhood: ``"ellipsoid"``: every voxel whose centre lies in the axis-aligned
             box of the ``cutoff_sigma`` ellipsoid (half-extent ``k sqrt(Sigma_jj)``), so no
             voxel with Mahalanobis distance <= k is missed, rotated Gaussians included.
             ``"cube"``: the official fixed ``(2 nbh + 1)^3`` cube around
-            ``floor((mu - lower) / voxel)``.
+            ``floor((mu - lower) / voxel)``. ``"scale_cube"``: GaussianFormer's cube
+            ``floor((mu - lower) / voxel) +- r`` with ``r = max(1, ceil(k max(s) / voxel))``
+            voxels, ``k = scale_multiplier``, ``max(s)`` the largest of the three scales
+            (rotation ignored); with per-axis voxel sizes r is computed per axis with that
+            axis's size (GaussianFormer has one size). Cubes are clipped to the grid, so
+            means outside it give their partial coverage (GaussianFormer asserts).
         cutoff_sigma: k of the ellipsoid neighbourhood, > 0; ``math.inf``: the whole grid.
         nbh: half-width of the cube neighbourhood (official: 4; its evaluation uses 5).
         chunk_size: (Gaussian, voxel) pairs evaluated at once; bounds peak memory
-            (about ``chunk_size * (56 + (26 + 2 C) * 4)`` bytes in float32), whatever N
+            (about ``chunk_size * (56 + (27 + 2 C) * 4)`` bytes in float32), whatever N
             and the box sizes are.
+        scale_multiplier: k of ``"scale_cube"`` (GaussianFormer 3, GaussianFormer-2 4), a
+            positive number, ``math.inf``: the whole grid; required with ``"scale_cube"``
+            and rejected with the other neighbourhoods.
+        feature_weight: the weight w_i of the features. ``"kernel"``: g_i (additive) or
+            N(x; mu_i, Sigma_i) (probabilistic: an equal-weight mixture).
+            ``"opacity_kernel"``: o_i g_i (additive, GaussianFormer's ``sum o g s``) or
+            o_i N(x; mu_i, Sigma_i) (probabilistic, GaussianFormer-2). ``None`` (default):
+            ``"kernel"`` in additive and ``"opacity_kernel"`` in probabilistic mode.
+        opacity_in_density: ``True`` (default): the density uses o_i g_i as above.
+            ``False``: g_i instead, i.e. clamp(sum g_i, 0, 1) (additive) or GaussianFormer-2's
+            1 - prod(1 - g_i) (probabilistic: exactly 1 at any Gaussian's mean, whatever
+            its opacity); the opacity then only weights the features (if at all).
+        empty_value: the value of every feature channel at *empty* voxels, those whose summed
+            feature weight ``W(x) = sum_i w_i`` (over the pairs evaluated) is
+            <= ``empty_threshold``: no Gaussian reaches them, or only with negligible weight.
+            GaussianFormer-2 uses 1/17 (on its 17 non-empty classes). A finite number.
+        empty_threshold: the threshold on W(x) above, a finite number >= 0 (default 1e-30;
+            GaussianFormer-2: 1e-9). Elsewhere features are ``sum w f`` (additive) and
+            ``sum w f / W`` (probabilistic).
 
     Returns:
         ``VoxelOutput`` with ``density (B, X, Y, Z)`` in [0, 1] and ``features
@@ -328,16 +478,30 @@ def voxelize(
 
     Raises:
         ValueError: naming the field, for NaN / inf in any Gaussian field or the features,
-            scales <= 0, zero-norm quaternions or opacities outside [0, 1]; a bad option;
-            or when the output grids and chunk buffers would exceed dego's memory limit
-            (:func:`dego.set_memory_limit`).
+            scales <= 0, zero-norm quaternions or opacities outside [0, 1]; a bad option
+            (naming it); or when the output grids and chunk buffers would exceed dego's
+            memory limit (:func:`dego.set_memory_limit`).
         TypeError: ``features`` of another dtype than the Gaussians.
 
     Gaussians partly or wholly outside the grid contribute where they overlap it; extreme
-    but finite scales, means and ``cutoff_sigma`` never overflow the box arithmetic.
-    Differentiable w.r.t. means, quats, scales, opacities and features.
+    but finite scales, means, ``cutoff_sigma`` and ``scale_multiplier`` never overflow the
+    box arithmetic. Zero-opacity (padding) Gaussians contribute nothing unless
+    ``feature_weight="kernel"`` (then to the features) or ``opacity_in_density=False``
+    (then to the density). Differentiable w.r.t. means, quats, scales, opacities and
+    features.
     """
-    config = VoxelizerConfig(mode, neighborhood, cutoff_sigma, nbh, chunk_size)
+    config = VoxelizerConfig(
+        mode,
+        neighborhood,
+        cutoff_sigma,
+        nbh,
+        chunk_size,
+        scale_multiplier,
+        feature_weight,
+        opacity_in_density,
+        empty_value,
+        empty_threshold,
+    )
     return _voxelize(gaussians, grid, features, config)
 
 
@@ -397,12 +561,25 @@ def _voxelize(
     else:
         rotations = _rotation_matrices(quats)
         whitening = (rotations / scales.unsqueeze(-2)).transpose(-1, -2).reshape(m, 9)
-        out = _voxelize_ellipsoid(
+        with torch.no_grad():
+            if config.neighborhood == "scale_cube":
+                assert config.scale_multiplier is not None  # VoxelizerConfig requires it
+                boxes = _scale_cube_boxes(
+                    means.detach(), scales.detach(), grid, float(config.scale_multiplier)
+                )
+            else:
+                boxes = _ellipsoid_boxes(
+                    means.detach(),
+                    rotations.detach(),
+                    scales.detach(),
+                    grid,
+                    config.cutoff_sigma,
+                )
+        out = _voxelize_boxes(
             (b, n),
             grid,
+            boxes,
             means,
-            rotations,
-            scales,
             whitening,
             opacities,
             flat_features,
@@ -415,12 +592,11 @@ def _voxelize(
     return VoxelOutput(density=out.density.to(out_dtype), features=out.features.to(out_dtype))
 
 
-def _voxelize_ellipsoid(
+def _voxelize_boxes(
     bn: tuple[int, int],
     grid: VoxelGrid,
+    boxes: tuple[Tensor, Tensor],  # (M, 3) inclusive low / high voxel indices, in the grid
     means: Tensor,  # (M, 3)
-    rotations: Tensor,  # (M, 3, 3)
-    scales: Tensor,  # (M, 3), floored
     whitening: Tensor,  # (M, 9)
     opacities: Tensor,  # (M,)
     features: Tensor,  # (M, C)
@@ -428,18 +604,17 @@ def _voxelize_ellipsoid(
     config: VoxelizerConfig,
     out_dtype: torch.dtype,
 ) -> VoxelOutput:
-    """Exact ellipsoid boxes: pairs enumerated in fixed-size ranges of the running count."""
+    """Per-Gaussian index boxes (ellipsoid or scale cube): pairs enumerated in fixed-size
+    ranges of the running pair count."""
     (b, n), (x, y, z) = bn, grid.shape
     dtype, device = means.dtype, means.device
     channels = features.shape[-1]
-    probabilistic = config.mode == "probabilistic"
+    kernel = _Kernel.of(config)
     grad_needed = torch.is_grad_enabled() and any(
         t.requires_grad for t in (means, whitening, opacities, features, log_normaliser)
     )
+    low, high = boxes
     with torch.no_grad():
-        low, high = _ellipsoid_boxes(
-            means.detach(), rotations.detach(), scales.detach(), grid, config.cutoff_sigma
-        )
         extent = (high - low + 1).clamp(min=0)  # (M, 3)
         counts = extent.prod(-1)
         ends = torch.cumsum(counts, 0)
@@ -452,7 +627,7 @@ def _voxelize_ellipsoid(
         dtype,
         out_dtype,
         chunk,
-        56 + (26 + 2 * channels) * dtype.itemsize,
+        56 + (27 + 2 * channels) * dtype.itemsize,
         total * (16 + 3 * dtype.itemsize) if grad_needed else 0,
     )
     lower = torch.tensor(grid.lower, dtype=dtype, device=device)
@@ -460,7 +635,7 @@ def _voxelize_ellipsoid(
     num_voxels = b * x * y * z
     density = torch.zeros(num_voxels, dtype=dtype, device=device)
     accumulated = torch.zeros(num_voxels, channels, dtype=dtype, device=device)
-    weights = torch.zeros(num_voxels if probabilistic else 0, dtype=dtype, device=device)
+    weights = torch.zeros(num_voxels, dtype=dtype, device=device)
     for first in range(0, total, max(chunk, 1)):  # bounded chunks of pairs
         with torch.no_grad():
             pair = torch.arange(first, min(first + chunk, total), device=device)
@@ -473,42 +648,35 @@ def _voxelize_ellipsoid(
             batch = owner // n  # n >= 1 whenever there are pairs
             voxel = ((batch * x + index[:, 0]) * y + index[:, 1]) * z + index[:, 2]
             centres = lower + (index.to(dtype) + 0.5) * size
-        args = (
-            means,
-            whitening,
-            opacities,
-            features,
-            owner,
-            centres,
-            log_normaliser,
-            probabilistic,
-        )
+        args = (means, whitening, opacities, features, owner, centres, log_normaliser, kernel)
         if grad_needed:
             terms = checkpoint(_pair_terms, *args, use_reentrant=False)
         else:
             terms = _pair_terms(*args)
         density.index_add_(0, voxel, terms[0])
         accumulated.index_add_(0, voxel, terms[1])
-        if probabilistic:
-            weights.index_add_(0, voxel, terms[2])
-    return _finish(density, accumulated, weights, probabilistic, (b, x, y, z))
+        weights.index_add_(0, voxel, terms[2])
+    return _finish(density, accumulated, weights, kernel, config, (b, x, y, z))
 
 
 def _finish(
     density: Tensor,
     accumulated: Tensor,
-    weights: Tensor,
-    probabilistic: bool,
+    weights: Tensor,  # summed feature weights W(x)
+    kernel: _Kernel,
+    config: VoxelizerConfig,
     shape: tuple[int, ...],
 ) -> VoxelOutput:
-    if probabilistic:
-        density = -torch.expm1(density)  # 1 - prod(1 - o g), accurate for small densities
-        safe = weights > _TINY_WEIGHT
-        accumulated = torch.where(
-            safe.unsqueeze(-1), accumulated / weights.clamp_min(_TINY_WEIGHT).unsqueeze(-1), 0.0
-        )
+    """Density from its sum; features ``empty_value`` where ``W <= empty_threshold``, else
+    ``sum w f`` (additive) or ``sum w f / W`` (probabilistic)."""
+    reached = (weights > config.empty_threshold).unsqueeze(-1)
+    if kernel.probabilistic:
+        density = -torch.expm1(density)  # 1 - prod(1 - x), accurate for small densities
+        # the divisor is 1 where unused, so the discarded branch's gradient stays finite
+        accumulated = accumulated / torch.where(reached, weights.unsqueeze(-1), 1.0)
     else:
         density = density.clamp(0, 1)
+    accumulated = torch.where(reached, accumulated, float(config.empty_value))
     return VoxelOutput(
         density=density.view(*shape), features=accumulated.view(*shape, accumulated.shape[-1])
     )
@@ -560,7 +728,7 @@ def _cube_pair_terms(
     axis_centres: tuple[Tensor, Tensor, Tensor],
     r: Tensor,
     reach: tuple[float, float, float],
-    probabilistic: bool,
+    kernel: _Kernel,
 ) -> tuple[Tensor, Tensor, Tensor]:
     quadratic = _cube_quadratics(means, precisions, cell, axis_centres, r, reach)
     quadratic = quadratic.flatten()[flat]
@@ -569,7 +737,7 @@ def _cube_pair_terms(
         opacities[local],
         features[local],
         log_normaliser[local],
-        probabilistic,
+        kernel,
     )
 
 
@@ -591,7 +759,8 @@ def _voxelize_cube(
     assert config.nbh is not None  # VoxelizerConfig requires it for the cube
     dtype, device = means.dtype, means.device
     channels = features.shape[-1]
-    probabilistic = config.mode == "probabilistic"
+    kernel = _Kernel.of(config)
+    probabilistic = kernel.probabilistic
     r = torch.arange(-config.nbh, config.nbh + 1, device=device)
     cube_size = r.shape[0] ** 3
     per_chunk = max(1, config.chunk_size // cube_size)
@@ -605,7 +774,7 @@ def _voxelize_cube(
         dtype,
         out_dtype,
         min(per_chunk, b * n) * cube_size,
-        49 + (4 + 2 * channels) * dtype.itemsize,
+        49 + (5 + 2 * channels) * dtype.itemsize,
         b * n * cube_size * 24 if grad_needed else 0,
     )
     lower = torch.tensor(grid.lower, dtype=dtype, device=device)
@@ -630,7 +799,7 @@ def _voxelize_cube(
     num_voxels = b * x * y * z
     density = torch.zeros(num_voxels, dtype=dtype, device=device)
     accumulated = torch.zeros(num_voxels, channels, dtype=dtype, device=device)
-    weights = torch.zeros(num_voxels if probabilistic else 0, dtype=dtype, device=device)
+    weights = torch.zeros(num_voxels, dtype=dtype, device=device)
     for start in range(0, b * n, per_chunk):  # bounded chunks of Gaussians
         part = slice(start, start + per_chunk)
         with torch.no_grad():
@@ -663,7 +832,7 @@ def _voxelize_cube(
                 axis_centres,
                 r,
                 reach,
-                probabilistic,
+                kernel,
                 use_reentrant=False,
             )
         else:  # the screening quadratics are the values: no recomputation
@@ -672,18 +841,18 @@ def _voxelize_cube(
                 opacities[part][local],
                 features[part][local],
                 log_normaliser[part][local],
-                probabilistic,
+                kernel,
             )
         density.index_add_(0, voxel, terms[0])
         accumulated.index_add_(0, voxel, terms[1])
-        if probabilistic:
-            weights.index_add_(0, voxel, terms[2])
-    return _finish(density, accumulated, weights, probabilistic, (b, x, y, z))
+        weights.index_add_(0, voxel, terms[2])
+    return _finish(density, accumulated, weights, kernel, config, (b, x, y, z))
 
 
 class GaussianVoxelizer(nn.Module):
-    """Module form of :func:`voxelize`: holds the grid and settings; ``forward(gaussians,
-    features=None)`` voxelises."""
+    """Module form of :func:`voxelize`: holds the grid and settings (the keyword options of
+    :func:`voxelize`, e.g. ``neighborhood="scale_cube", scale_multiplier=3``);
+    ``forward(gaussians, features=None)`` voxelises."""
 
     def __init__(self, grid: VoxelGrid | None = None, **config: object) -> None:
         super().__init__()
@@ -703,4 +872,11 @@ class GaussianVoxelizer(nn.Module):
         return f"grid={self.grid}, {fields}"
 
 
-__all__ = ["GaussianVoxelizer", "VoxelOutput", "VoxelizerConfig", "voxelize"]
+__all__ = [
+    "FeatureWeight",
+    "GaussianVoxelizer",
+    "Neighborhood",
+    "VoxelOutput",
+    "VoxelizerConfig",
+    "voxelize",
+]

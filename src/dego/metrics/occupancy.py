@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -21,6 +22,9 @@ from dego.metrics.report import OccupancyReport, per_class_iou
 
 WEAK_REMOVED_CLASSES = (0, 12)
 """GT classes whose voxels the weakly supervised protocol removes (others, other_flat)."""
+SURROUNDOCC_REMOVED_CLASSES = (0,)
+"""GT classes whose voxels the SurroundOcc protocol removes (0: noise)."""
+_REMOVED_CLASSES = {"weak": WEAK_REMOVED_CLASSES, "surroundocc": SURROUNDOCC_REMOVED_CLASSES}
 
 
 class OccupancyMetrics(CountingMetric):
@@ -29,10 +33,12 @@ class OccupancyMetrics(CountingMetric):
     Args:
         protocol: ``"weak"`` (GaussianFlowOcc / DeGO: voxels whose gt is others (0) or
             other_flat (12) are removed from the mask; mIoU over the 15 classes
-            1..11, 13..16) or ``"occ3d"`` (the Occ3D benchmark: mIoU over every class
-            but free, 0..16 for Occ3D-nuScenes).
+            1..11, 13..16), ``"occ3d"`` (the Occ3D benchmark: mIoU over every class
+            but free, 0..16 for Occ3D-nuScenes) or ``"surroundocc"`` (SurroundOcc's
+            labels as GaussianFormer scores them: voxels whose gt is 0, noise, are
+            removed; mIoU over 1..16).
         num_classes: C, the number of labels including free (18 for Occ3D-nuScenes).
-            ``"weak"`` is defined on the Occ3D-nuScenes labels and needs C = 18.
+            ``"weak"`` and ``"surroundocc"`` are defined on 18 labels with free 17.
         free_label: the empty-space label (17).
         ignore_label: gt value whose voxels are skipped (255), or ``None``; any int
             outside ``0..C-1`` (e.g. -1).
@@ -69,9 +75,9 @@ class OccupancyMetrics(CountingMetric):
         if not 0 <= free_label < num_classes:
             raise ValueError(f"free_label: {free_label} must lie in 0..{num_classes - 1}")
         ignore_label = _check_ignore_label(ignore_label, num_classes)
-        if protocol == "weak" and (num_classes, free_label) != (NUM_CLASSES, FREE_LABEL):
+        if protocol != "occ3d" and (num_classes, free_label) != (NUM_CLASSES, FREE_LABEL):
             raise ValueError(
-                "protocol: 'weak' is defined on the 18 Occ3D-nuScenes labels "
+                f"protocol: {protocol!r} is defined on 18 labels "
                 f"(num_classes=18, free_label=17), got num_classes={num_classes}, "
                 f"free_label={free_label}"
             )
@@ -87,9 +93,9 @@ class OccupancyMetrics(CountingMetric):
         self.free_label = free_label
         self.ignore_label = ignore_label
         self.groups = {name: tuple(int(i) for i in ids) for name, ids in groups.items()}
-        if protocol == "weak":
-            self.evaluated_classes = PROTOCOL_CLASSES["weak"]
-            self.removed_classes: tuple[int, ...] = WEAK_REMOVED_CLASSES
+        if protocol in _REMOVED_CLASSES:
+            self.evaluated_classes = PROTOCOL_CLASSES[protocol]
+            self.removed_classes: tuple[int, ...] = _REMOVED_CLASSES[protocol]
         else:
             self.evaluated_classes = tuple(c for c in range(num_classes) if c != free_label)
             self.removed_classes = ()
@@ -141,6 +147,15 @@ class OccupancyMetrics(CountingMetric):
         confusion, geometric = self._totals()
         if int(confusion.sum()) == 0:
             raise RuntimeError("compute: no voxel has been evaluated yet; call update() first")
+        if int(geometric[:, 1].sum()) == 0 and int(geometric[1].sum()) > 0:
+            warnings.warn(
+                f"no voxel was predicted free (label {self.free_label}) while the ground truth "
+                "has free voxels: were the predictions overlaid with free space? "
+                "dego.compat.dego.occupancy_to_labels (or VoxelOutput.labels) turns density and "
+                "semantics into labels with it",
+                UserWarning,
+                stacklevel=2,
+            )
         occupied_iou = per_class_iou(geometric)[0]
         class_names = (
             CLASS_NAMES
@@ -170,4 +185,4 @@ class OccupancyMetrics(CountingMetric):
         return ", ".join(f"{k}={v!r}" for k, v in self._config().items() if k != "groups")
 
 
-__all__ = ["WEAK_REMOVED_CLASSES", "OccupancyMetrics"]
+__all__ = ["SURROUNDOCC_REMOVED_CLASSES", "WEAK_REMOVED_CLASSES", "OccupancyMetrics"]

@@ -52,7 +52,8 @@ class OccupancyReport:
         iou: geometric IoU of occupied (label != free) vs free, over the same voxels.
         group_means: nanmean of ``per_class`` over each group (``insm``, ``scnm``, ``hcm``
             by default), from the same pooled per-class vector.
-        protocol: ``"occ3d"`` or ``"weak"`` (or ``"custom"`` for hand-built reports).
+        protocol: ``"occ3d"``, ``"weak"`` or ``"surroundocc"`` (or ``"custom"`` for
+            hand-built reports).
         evaluated_classes: the classes averaged into ``miou``.
         groups: the class ids of each group.
         class_names: names of all C labels.
