@@ -278,6 +278,37 @@ class DeformationOutput:
         )
 
 
+def _canonical_batch(gaussians: GaussianSet) -> tuple[int, int]:
+    """``(B, N)`` of a canonical set; ``ValueError`` unless its batch shape is ``(B,)``."""
+    if len(gaussians.batch_shape) != 1:
+        raise ValueError(
+            f"gaussians: expected batch shape (B,), got {tuple(gaussians.batch_shape)}"
+        )
+    return gaussians.batch_shape[0], gaussians.num_gaussians
+
+
+def _check_like_gaussians(
+    gaussians: GaussianSet, weight: Tensor, features: Tensor, *others: tuple[str, Tensor]
+) -> None:
+    """The input checks of the deformation networks: ``features`` and ``others`` in the
+    Gaussians' dtype and device, the module's parameters (``weight``) too, and finite
+    Gaussians and features (one host sync)."""
+    for name, value in [("features", features), *others]:
+        if value.dtype != gaussians.dtype or value.device != gaussians.device:
+            raise ValueError(
+                f"{name}: expected {gaussians.dtype} on {gaussians.device} like gaussians, "
+                f"got {value.dtype} on {value.device}"
+            )
+    if gaussians.dtype != weight.dtype or gaussians.device != weight.device:
+        raise ValueError(
+            f"gaussians: {gaussians.dtype} on {gaussians.device}, but the module's "
+            f"parameters are {weight.dtype} on {weight.device}; move one with .to()"
+        )
+    check_finite_with(
+        [*((f"gaussians.{name}", t) for name, t in gaussians._items()), ("features", features)]
+    )
+
+
 def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
     """``layers`` Linear layers with ReLU between them (none after the last)."""
     dims = [in_dim] + [hidden] * (layers - 1) + [out_dim]
@@ -499,11 +530,7 @@ class DecoupledDeformation(nn.Module):
         Returns:
             :class:`DeformationOutput` with ``gaussians`` of batch shape ``(B, T)``.
         """
-        if len(gaussians.batch_shape) != 1:
-            raise ValueError(
-                f"gaussians: expected batch shape (B,), got {tuple(gaussians.batch_shape)}"
-            )
-        b, n = gaussians.batch_shape[0], gaussians.num_gaussians
+        b, n = _canonical_batch(gaussians)
         if features.shape[:2] != (b, n):
             raise ValueError(
                 f"features: expected shape ({b}, {n}, C_g) to match gaussians, got "
@@ -513,21 +540,7 @@ class DecoupledDeformation(nn.Module):
             raise ValueError(
                 f"features: expected C_g = {self.feature_dim} channels, got {features.shape[-1]}"
             )
-        for name, value in [("features", features), ("times", times)]:
-            if value.dtype != gaussians.dtype or value.device != gaussians.device:
-                raise ValueError(
-                    f"{name}: expected {gaussians.dtype} on {gaussians.device} like gaussians, "
-                    f"got {value.dtype} on {value.device}"
-                )
-        weight = self.input_static.weight
-        if gaussians.dtype != weight.dtype or gaussians.device != weight.device:
-            raise ValueError(
-                f"gaussians: {gaussians.dtype} on {gaussians.device}, but the module's "
-                f"parameters are {weight.dtype} on {weight.device}; move one with .to()"
-            )
-        inputs = [(f"gaussians.{name}", t) for name, t in gaussians._items()]
-        inputs.append(("features", features))
-        check_finite_with(inputs)
+        _check_like_gaussians(gaussians, self.input_static.weight, features, ("times", times))
         times = self._normalized_times(times, b)  # (B, T)
 
         static = torch.cat(

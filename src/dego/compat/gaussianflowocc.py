@@ -18,9 +18,14 @@ from jaxtyping import Float, Int
 from torch import Tensor, nn
 
 from dego._checks import check_int
-from dego._policy import check_finite_with
 from dego._typing import typechecked
-from dego.deformation import DeformationDeltas, DeformationLossWeights, DeformationOutput
+from dego.deformation import (
+    DeformationDeltas,
+    DeformationLossWeights,
+    DeformationOutput,
+    _canonical_batch,
+    _check_like_gaussians,
+)
 from dego.gaussians import GaussianSet
 
 GAUSSIANFLOWOCC_CHECKPOINT_PREFIX = "temporal_module."
@@ -149,26 +154,13 @@ class TemporalOffsetNetwork(nn.Module):
             (``deltas.means`` and both raw offsets are the offsets; the other deltas are 0).
             Append the canonical frame with :meth:`DeformationOutput.with_canonical`.
         """
-        if len(gaussians.batch_shape) != 1:
-            raise ValueError(
-                f"gaussians: expected batch shape (B,), got {tuple(gaussians.batch_shape)}"
-            )
-        b, n = gaussians.batch_shape[0], gaussians.num_gaussians
+        b, n = _canonical_batch(gaussians)
         if tuple(features.shape) != (b, n, self.feature_dim):
             raise ValueError(
                 f"features: expected shape ({b}, {n}, {self.feature_dim}), got "
                 f"{tuple(features.shape)}"
             )
-        weight = self.ffn[0].weight
-        for name, value in [("features", features), ("module parameters", weight)]:
-            if value.dtype != gaussians.dtype or value.device != gaussians.device:
-                raise ValueError(
-                    f"{name}: expected {gaussians.dtype} on {gaussians.device} like gaussians, "
-                    f"got {value.dtype} on {value.device}"
-                )
-        check_finite_with(
-            [*((f"gaussians.{k}", t) for k, t in gaussians._items()), ("features", features)]
-        )
+        _check_like_gaussians(gaussians, self.ffn[0].weight, features)
         if time_indices.device != gaussians.device:
             raise ValueError(
                 f"time_indices: expected on {gaussians.device} like gaussians, got "

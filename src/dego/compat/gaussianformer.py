@@ -40,7 +40,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dego._typing import typechecked
-from dego.gaussians import GaussianSet
+from dego.gaussians import GaussianSet, _conjugate
 from dego.grid import VoxelGrid
 from dego.voxelizer import voxelize
 
@@ -84,7 +84,7 @@ def _gaussians(
     with _argument_names():
         return GaussianSet(
             means=means,
-            quats=torch.cat([rotations[..., :1], -rotations[..., 1:]], dim=-1),  # R^T -> R
+            quats=_conjugate(rotations),  # R^T diag(s^2) R -> dego's R diag(s^2) R^T
             scales=scales,
             opacities=opacities,
             features=features,
