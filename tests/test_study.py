@@ -121,6 +121,7 @@ def test_study_config_rejects_bad_values(field: str, value: object) -> None:
         (["--budgets", "0"], "--budgets"),
         (["--frames", "1"], "--frames"),
         (["--mask-prior", "-1"], "--mask-prior"),
+        (["--variants", "static,flow"], "--variants"),
     ],
 )
 def test_bad_study_arguments_exit_with_a_message(
@@ -155,8 +156,11 @@ def test_quick_study_writes_the_report(quick_study: tuple[Path, str]) -> None:
     text = (out / "study.md").read_text()
     for heading in ("## 300 Gaussians", "## Paired differences", "## Reading"):
         assert heading in text
-    assert "| decoupled - rigid | 300 |" in text
-    assert "decoupled - rigid on articulated agents at t != 0" in text
+    for pair in ("decoupled - static", "decoupled - rigid", "true motion (oracle) - static"):
+        assert f"| {pair} | 300 | 2 |" in text, pair
+    assert "static - single-frame" in text
+    assert "decoupled - static on articulated t!=0" in text
+    assert "the ground-truth motion (oracle) gains" in text
     assert text in stdout  # the report is also printed
 
 
@@ -172,10 +176,44 @@ def test_quick_study_json_holds_every_run(quick_study: tuple[Path, str]) -> None
         finite = [v for v in r["scores"].values() if v is not None]
         assert all(0 <= v <= 100 for v in finite)
         assert r["scores"]["mIoU t=0"] is not None and r["scores"]["mIoU t=0"] > 0
-        if r["variant"] in ("static", "rigid"):
+        if r["variant"] == "lifted-labels":
+            assert r["mask"]["mask static"] is None and r["seconds"] == 0.0  # no fit
+        elif not r["variant"].startswith("decoupled"):
             assert r["mask"]["mask static"] == 0.0  # no learned mask: m = 0
         else:
             auc = r["mask"]["mask AUC"]
             assert auc is None or 0 <= auc <= 1
     assert set(payload["summary"]) == {str(b) for b in QUICK_STUDY.budgets}
-    assert "decoupled - rigid @ 300" in payload["paired"]
+    assert "decoupled - rigid @ 300: articulated t!=0" in payload["paired"]
+    assert "decoupled - static @ 300: HCM t=0" in payload["paired"]
+
+
+def test_default_study_leaves_out_the_mask_prior_variant() -> None:
+    from dego.study import DEFAULT_STUDY_VARIANTS
+
+    assert "decoupled+prior" not in StudyConfig().variants
+    assert StudyConfig().variants == DEFAULT_STUDY_VARIANTS
+    assert set(DEFAULT_STUDY_VARIANTS) | {"decoupled+prior"} == set(STUDY_VARIANTS)
+    assert QUICK_STUDY.variants == STUDY_VARIANTS  # the tests run every variant
+
+
+def test_paired_report_marks_resolved_signs() -> None:
+    from dego.study import MASK_METRICS, study_report
+
+    runs = [
+        StudyRun(
+            seed,
+            10,
+            variant,
+            dict.fromkeys(METRICS, 1.0) | {"articulated t!=0": value + seed},
+            dict.fromkeys(MASK_METRICS, 0.5),
+            3.0,
+            1.0,
+        )
+        for seed in range(3)
+        for variant, value in (("static", 5.0), ("decoupled", 9.0))
+    ]
+    text, payload = study_report(runs, StudyConfig(seeds=(0, 1, 2), budgets=(10,)))
+    line = next(x for x in text.splitlines() if x.startswith("| decoupled - static | 10 |"))
+    assert "4.00 [4.00, 4.00] *" in line
+    assert payload["paired"]["decoupled - static @ 10: articulated t!=0"]["mean"] == 4.0

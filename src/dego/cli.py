@@ -25,6 +25,7 @@ from dego._version import __version__
 from dego.data.synthetic import SyntheticScene
 from dego.demo import (
     DEMO_FRAME_DT,
+    ROW_NAMES,
     VARIANTS,
     ClipScore,
     DemoClip,
@@ -39,27 +40,29 @@ from dego.demo import (
     rigidity_mask,
     score_clip,
 )
-from dego.study import QUICK_STUDY, StudyConfig, run_study, write_study
+from dego.study import QUICK_STUDY, STUDY_VARIANTS, StudyConfig, run_study, write_study
 
 PROGRAM_DESCRIPTION = (
     "Run Deformable Gaussian Occupancy (DeGO) end to end on synthetic driving clips. "
-    "'dego demo' fits static, rigid and decoupled Gaussians to one clip and scores them; "
-    "'dego study' repeats the fits over seeds and Gaussian budgets."
+    "'dego demo' fits static, rigid and decoupled Gaussians (and reference rows) to one clip "
+    "and scores them; 'dego study' repeats the fits over seeds and Gaussian budgets."
 )
 DEMO_DESCRIPTION = (
     "Fit static, rigid and decoupled Gaussians to a synthetic clip from its pseudo labels, "
-    "score them at every frame against the ground truth, print one table and write "
-    "results.md, results.json and pictures."
+    "beside three reference rows (single-frame, free offsets and the ground-truth true "
+    "motion), score them at every frame against the ground truth, print one table and "
+    "each variant's gain over static, and write results.md, results.json and pictures."
 )
 STUDY_DESCRIPTION = (
-    "When does decoupling pay off? Fits the static, rigid and decoupled variants (and "
-    "decoupled with a mask prior) over seeds and Gaussian budgets, scores them at every "
-    "frame and reports means with 95% confidence intervals and paired differences."
+    "When does decoupling pay off? Fits the static, rigid and decoupled variants and the "
+    "reference rows (single-frame, free offsets, true motion) over seeds and Gaussian "
+    "budgets, scores them at every frame and reports means with 95% confidence intervals "
+    "and paired differences."
 )
 
 BUDGETS = {
-    "quick": {"frames": 3, "iterations": 80, "gaussians": 2500},
-    "full": {"frames": 5, "iterations": 600, "gaussians": 8000},
+    "quick": {"frames": 3, "iterations": 60, "gaussians": 1500},
+    "full": {"frames": 5, "iterations": 150, "gaussians": 2500},
 }
 """Default clip length, iterations per variant and Gaussians of ``--quick`` and the full run."""
 
@@ -177,6 +180,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--iterations", type=int, help=f"optimiser steps per fit ({default.iterations})"
     )
     study.add_argument(
+        "--variants",
+        type=_name_list,
+        help=f"comma-separated, some of {', '.join(STUDY_VARIANTS)} ({','.join(default.variants)})",
+    )
+    study.add_argument(
         "--mask-prior",
         type=float,
         help=f"weight of the mask sparsity prior of decoupled+prior ({default.mask_prior})",
@@ -186,6 +194,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     study.add_argument("--no-pictures", action="store_true", help="skip the plot")
     return parser
+
+
+def _name_list(text: str) -> tuple[str, ...]:
+    """``"static,rigid"`` -> ``("static", "rigid")``."""
+    return tuple(part.strip() for part in text.split(",") if part.strip())
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -212,7 +225,7 @@ def study_main(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
     base = QUICK_STUDY if args.quick else StudyConfig()
     changes = {
         name: getattr(args, name)
-        for name in ("seeds", "budgets", "frames", "iterations", "mask_prior")
+        for name in ("seeds", "budgets", "frames", "iterations", "variants", "mask_prior")
         if getattr(args, name) is not None
     }
     try:
@@ -261,8 +274,38 @@ def main(argv: list[str] | None = None) -> int:
     return run_demo(args.seed, budget, device, args.out, pictures=not args.no_pictures)
 
 
-LIFTED_ROW = "lifted labels (no learning)"
+LIFTED_ROW = ROW_NAMES["lifted-labels"]
 """The table's ceiling row: each frame's own pseudo labels lifted to 3D."""
+
+PICTURED_VARIANTS = ("static", "rigid", "decoupled", "true-motion")
+"""Variants whose BEV at the last frame ``dego demo`` draws."""
+
+DEMO_VARIANTS = ("single-frame", *VARIANTS, "free-offsets", "true-motion")
+"""What ``dego demo`` fits, in table order: the fitted variants between their references."""
+
+GAIN_COLUMNS = ("articulated t!=0", "vehicles t!=0", "HCM", "mIoU")
+"""The columns of the demo's "gain over static" lines (HCM, mIoU: at t = 0)."""
+
+
+def paired_gains(scores: dict[str, ClipScore]) -> list[str]:
+    """One line per variant: its gain over ``static`` (points) on :data:`GAIN_COLUMNS`."""
+    if "static" not in scores:
+        return []
+    base = scores["static"].row()
+    lines = []
+    for name, score in scores.items():
+        if name in ("static", LIFTED_ROW, "initial"):
+            continue
+        row = score.row()
+        cells = ", ".join(
+            f"{c}{'' if 't!=0' in c else ' t=0'} {row[c] - base[c]:+.1f}" for c in GAIN_COLUMNS
+        )
+        lines.append(f"{name} - static: {cells}")
+    return lines
+
+
+def _learns_mask(result: FitResult) -> bool:
+    return getattr(result.deformation, "fixed_mask", 0.0) is None
 
 
 def run_demo(
@@ -290,16 +333,24 @@ def run_demo(
         "initial": predict_clip(initial, None, clip),
     }
     results: list[FitResult] = []
-    for variant in VARIANTS:
-        result = fit_scene(clip, variant, config, progress=ProgressBar(variant, config.iterations))
+    for variant in DEMO_VARIANTS:
+        name = ROW_NAMES.get(variant, variant)
+        steps = round(config.iterations / clip.num_frames) if variant == "single-frame" else None
+        bar = ProgressBar(variant, steps or config.iterations)
+        result = fit_scene(clip, variant, config, scene=scene, progress=bar)
         results.append(result)
-        labels[variant] = predict_clip(result.model, result.deformation, clip)
+        labels[name] = predict_clip(result.model, result.deformation, clip)
     scores = {name: score_clip(grids, clip) for name, grids in labels.items()}
-    seconds = {result.variant: result.seconds for result in results}
+    seconds = {ROW_NAMES.get(r.variant, r.variant): r.seconds for r in results}
     table = format_table(scores, seconds)
     print(table)
     print(TABLE_LEGEND)
-    masks = {r.variant: mask_by_group(rigidity_mask(r), r.model) for r in results}
+    gains = paired_gains(scores)
+    for line in gains:
+        print(line)
+    masks = {
+        r.variant: mask_by_group(rigidity_mask(r), r.model) for r in results if _learns_mask(r)
+    }
     for variant, summary in masks.items():
         print(
             f"{variant}: mean rigidity mask m (1 = nonrigid) "
@@ -307,7 +358,7 @@ def run_demo(
         )
 
     out.mkdir(parents=True, exist_ok=True)
-    written = list(_write_results(out, table, scores, seconds, masks, seed, budget, device))
+    written = list(_write_results(out, table, gains, scores, seconds, masks, seed, budget, device))
     if pictures:
         written += _write_pictures(out, clip, labels, results)
     print(f"wrote {', '.join(str(path) for path in written)}")
@@ -326,6 +377,7 @@ TABLE_LEGEND = (
 def _write_results(
     out: Path,
     table: str,
+    gains: list[str],
     scores: dict[str, ClipScore],
     seconds: dict[str, float],
     masks: dict[str, dict[str, float]],
@@ -339,6 +391,7 @@ def _write_results(
         "settings": settings,
         "percent": rows,
         "fit_seconds": seconds,
+        "gains_over_static": gains,
         "rigidity_mask": {variant: _json_floats(summary) for variant, summary in masks.items()},
     }
     json_path = out / "results.json"
@@ -351,6 +404,8 @@ def _write_results(
         + table
         + "\n\n"
         + TABLE_LEGEND
+        + "\n\nGain over static, points (one seed; see `dego study` for intervals):\n\n"
+        + "\n".join(f"- {line}" for line in gains)
         + "\n\nMean rigidity mask m (1 = nonrigid) over all Gaussians and by the group of "
         + "their most likely class:\n\n"
         + "\n".join(
@@ -377,12 +432,20 @@ def _write_pictures(
         print('pictures skipped: they need matplotlib (pip install "dego-occupancy[viz]")')
         return []
     last = clip.num_frames - 1
+    pictured = [r for r in results if r.variant in PICTURED_VARIANTS]
     paths = [
-        bev_picture(labels[r.variant][last], clip, r.variant, out / f"bev_{r.variant}.png", last)
-        for r in results
+        bev_picture(
+            labels[ROW_NAMES.get(r.variant, r.variant)][last],
+            clip,
+            ROW_NAMES.get(r.variant, r.variant),
+            out / f"bev_{r.variant}.png",
+            last,
+        )
+        for r in pictured
     ]
-    paths += [camera_picture(r, clip, out / f"camera_{r.variant}.png") for r in results]
-    paths.append(loss_picture(results, out / "losses.png"))
+    fitted = [r for r in results if r.variant in VARIANTS]
+    paths += [camera_picture(r, clip, out / f"camera_{r.variant}.png") for r in fitted]
+    paths.append(loss_picture(fitted, out / "losses.png"))
     return paths
 
 

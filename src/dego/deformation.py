@@ -48,13 +48,34 @@ _OFFICIAL_SCALE_CLAMP = 1.0  # metres, added to a linear scale
 _OFFICIAL_QUAT_EPS = 1e-8
 
 
+Reduction = Literal["mean", "sum", "weighted"]
+REDUCTIONS: tuple[Reduction, ...] = ("mean", "sum", "weighted")
+"""How :func:`deformation_loss` reduces ``L_reg`` over (batch, time, Gaussian); see
+:class:`DeformationLossWeights`."""
+
+
 @dataclasses.dataclass(frozen=True)
 class DeformationLossWeights:
-    """Weights of :func:`deformation_loss`.
+    """Weights of :func:`deformation_loss`, and how its ``L_reg`` is reduced.
 
-    ``L_reg = sum_p lambda_p mean ||d_p||^2`` over p in :data:`PARAMETERS` and
+    ``L_reg = sum_p lambda_p R(||d_p||^2)`` over p in :data:`PARAMETERS` and
     ``L_def = reg * L_reg + mask * L_mask``. The paper gives no values; both presets
     default to the official code's (every lambda_p = 1, reg 10, mask 0.5).
+
+    ``reduction`` is R, over the (B, T, N) per-Gaussian values (``paper``: the squared
+    norm of each Gaussian's delta; ``official``: its mean over the parameter's elements):
+
+    - ``"mean"`` (default, the paper's and the official code's): the mean over every
+      Gaussian and time step. Its scale is ``1 / N``: against a rendering loss averaged
+      over pixels, the few Gaussians of a small moving agent weigh their share of the
+      *Gaussians*, which can be far more than their share of the *pixels*.
+    - ``"sum"``: the sum (``official``: of every element), for losses that are sums too.
+    - ``"weighted"``: ``sum_{b,t,i} w_{b,i} v_{b,t,i} / (T sum_{b,i} w_{b,i})`` with
+      per-Gaussian weights ``w >= 0`` given to :func:`deformation_loss`
+      (``gaussian_weights``): e.g. 1 on the movable Gaussians only, or each Gaussian's
+      rendered footprint. All-ones weights give ``"mean"``; all-zero weights give 0.
+
+    ``L_mask`` is always the mean over Gaussians.
     """
 
     means: float = 1.0
@@ -63,12 +84,17 @@ class DeformationLossWeights:
     opacities: float = 1.0
     reg: float = 10.0
     mask: float = 0.5
+    reduction: Reduction = "mean"
 
     def __post_init__(self) -> None:
         for field in dataclasses.fields(self):
+            if field.name == "reduction":
+                continue
             value = getattr(self, field.name)
             if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"{field.name}: expected a finite weight >= 0, got {value!r}")
+        if self.reduction not in REDUCTIONS:
+            raise ValueError(f"reduction: expected one of {REDUCTIONS}, got {self.reduction!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -745,28 +771,60 @@ def _mean(values: Tensor) -> Tensor:
 
 @typechecked
 def deformation_loss(
-    output: DeformationOutput, weights: DeformationLossWeights | None = None
+    output: DeformationOutput,
+    weights: DeformationLossWeights | None = None,
+    *,
+    reduction: str | None = None,
+    gaussian_weights: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """DeGO's deformation losses: ``{"reg", "mask", "total"}`` (scalars).
 
-    ``reg = sum_p lambda_p ||d_p||^2`` over the applied deltas, averaged (``paper``: mean
-    over (B, T, N) of the squared norm; ``official``: mean over every element);
+    ``reg = sum_p lambda_p R(||d_p||^2)`` over the applied deltas, reduced by R (see
+    :class:`DeformationLossWeights`; ``"mean"``, the default: ``paper``, the mean over
+    (B, T, N) of the squared norm; ``official``, the mean over every element);
     ``mask = mean(m (1 - m))`` (``official``: the last time step's mask only);
     ``total = weights.reg * reg + weights.mask * mask``. ``weights`` defaults to
     ``output.loss_weights``. The canonical step of a
     :meth:`DeformationOutput.with_canonical` output is left out.
+
+    Args:
+        output: a :class:`DecoupledDeformation` result.
+        weights: the lambdas and the default reduction.
+        reduction: overrides ``weights.reduction``: ``"mean"``, ``"sum"`` or ``"weighted"``.
+        gaussian_weights: ``(N,)`` or ``(B, N)`` weights ``>= 0`` of the ``"weighted"``
+            reduction (required by it, refused by the others), real or bool, e.g.
+            ``is_movable``. Not differentiated through (detached).
+
+    Raises:
+        ValueError: an unknown ``reduction``; ``gaussian_weights`` missing for
+            ``"weighted"``, given for another reduction, of the wrong shape or device,
+            negative or not finite.
     """
     weights = output.loss_weights if weights is None else weights
+    reduction = weights.reduction if reduction is None else reduction
+    if reduction not in REDUCTIONS:
+        raise ValueError(f"reduction: expected one of {REDUCTIONS}, got {reduction!r}")
     official = output.preset == "official"
     steps = slice(None, -1) if output.canonical_last else slice(None)
+    per_gaussian = _reduction_weights(output, reduction, gaussian_weights)
     reg = output.deltas.means.new_zeros(())
     for name in PARAMETERS:
-        delta = getattr(output.deltas, name)[:, steps]
-        if official:
-            term = _mean(delta.square())
+        squared = getattr(output.deltas, name)[:, steps].square()
+        if name == "opacities":
+            value = squared  # (B, T, N): one element per Gaussian
+        elif official and reduction != "sum":
+            value = squared.mean(-1)
         else:
-            squared = delta.square()
-            term = _mean(squared if name == "opacities" else squared.sum(-1))
+            value = squared.sum(-1)
+        if reduction == "mean":
+            term = _mean(value)
+        elif reduction == "sum":
+            term = value.sum()
+        else:
+            assert per_gaussian is not None
+            w = per_gaussian[:, None]  # (B, 1, N)
+            total_weight = w.sum() * value.shape[1]
+            term = (w * value).sum() / total_weight.clamp_min(torch.finfo(value.dtype).tiny)
         reg = reg + getattr(weights, name) * term
     m = output.rigid_mask if output.rigid_mask.ndim == 2 else output.rigid_mask[:, steps]
     m = m[:, -1] if official else m
@@ -774,10 +832,46 @@ def deformation_loss(
     return {"reg": reg, "mask": mask, "total": weights.reg * reg + weights.mask * mask}
 
 
+def _reduction_weights(
+    output: DeformationOutput, reduction: str, gaussian_weights: Tensor | None
+) -> Tensor | None:
+    """``gaussian_weights`` checked and broadcast to ``(B, N)`` (``None`` unless weighted)."""
+    if reduction != "weighted":
+        if gaussian_weights is not None:
+            raise ValueError(
+                f"gaussian_weights: only used by reduction='weighted', got reduction={reduction!r}"
+            )
+        return None
+    if gaussian_weights is None:
+        raise ValueError("gaussian_weights: reduction='weighted' needs (N,) or (B, N) weights")
+    b, n = output.gaussians.batch_shape[0], output.gaussians.num_gaussians
+    reference = output.deltas.means
+    if gaussian_weights.is_complex():
+        raise ValueError("gaussian_weights: expected real or bool weights, got complex")
+    if (
+        gaussian_weights.ndim not in (1, 2)
+        or gaussian_weights.shape[-1] != n
+        or (gaussian_weights.ndim == 2 and gaussian_weights.shape[0] != b)
+    ):
+        raise ValueError(
+            f"gaussian_weights: expected shape ({n},) or ({b}, {n}), got "
+            f"{tuple(gaussian_weights.shape)}"
+        )
+    if gaussian_weights.device != reference.device:
+        raise ValueError(
+            f"gaussian_weights: expected device {reference.device}, got {gaussian_weights.device}"
+        )
+    weights = gaussian_weights.detach().to(reference.dtype)
+    if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+        raise ValueError("gaussian_weights: expected finite weights >= 0")
+    return weights.expand(b, n)
+
+
 __all__ = [
     "MAX_LOG_SCALE_CHANGE",
     "OFFICIAL_CHECKPOINT_PREFIX",
     "PARAMETERS",
+    "REDUCTIONS",
     "DecoupledDeformation",
     "DeformationDeltas",
     "DeformationLossWeights",

@@ -1,11 +1,13 @@
 """``dego study``: when does decoupling pay off? Variants x seeds x Gaussian budgets.
 
 For every seed a synthetic clip is rendered; for every total Gaussian budget each
-variant (``static``, ``rigid``, ``decoupled`` and ``decoupled`` with the optional mask
-prior) is fitted from the pseudo labels and scored at every frame (:mod:`dego.demo`).
-The report gives per-variant means with 95% confidence intervals over seeds, the paired
-difference decoupled - rigid on articulated agents at the non-reference frames, and how
-well the learned rigidity mask separates articulated agents from vehicles.
+variant (``static``, ``rigid``, ``decoupled``, ``decoupled`` with the optional mask
+prior, and the reference rows ``single-frame``, ``free-offsets`` and the ground-truth
+``true-motion`` oracle) is fitted from the pseudo labels and scored at every frame
+(:mod:`dego.demo`). The report gives per-variant means with 95% confidence intervals
+over seeds, paired differences (e.g. decoupled - static on moving agents at the
+non-reference frames and on HCM at the reference frame), and how well the learned
+rigidity mask separates articulated agents from vehicles.
 """
 
 from __future__ import annotations
@@ -15,24 +17,40 @@ import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import torch
-import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor
 
 from dego._checks import check_int
 from dego.data.synthetic import SyntheticScene
 from dego.demo.clip import DEMO_FRAME_DT, DemoClip
-from dego.demo.evaluate import predict_clip, score_clip
-from dego.demo.fit import FitConfig, FitResult, fit_scene, rigidity_mask
+from dego.demo.evaluate import lifted_clip_labels, predict_clip, score_clip
+from dego.demo.fit import ROW_NAMES, FitConfig, FitResult, fit_scene, rigidity_mask
+from dego.demo.offsets import agent_under
 
-STUDY_VARIANTS = ("static", "rigid", "decoupled", "decoupled+prior")
-"""``decoupled+prior``: ``decoupled`` with :attr:`StudyConfig.mask_prior` as the weight
-of the mask sparsity prior (:attr:`~dego.demo.FitConfig.mask_sparsity`)."""
+STUDY_VARIANTS = (
+    "lifted-labels",
+    "single-frame",
+    "static",
+    "rigid",
+    "decoupled",
+    "decoupled+prior",
+    "free-offsets",
+    "true-motion",
+)
+""":data:`~dego.demo.VARIANTS` and :data:`~dego.demo.REFERENCE_VARIANTS`, the
+``lifted-labels`` ceiling (no fit: each frame's pseudo labels lifted to 3D), and
+``decoupled+prior``: ``decoupled`` with :attr:`StudyConfig.mask_prior` as the weight of
+the mask sparsity prior (:attr:`~dego.demo.FitConfig.mask_sparsity`). ``true-motion``
+uses the ground truth (a ceiling, not a competitor)."""
+
+DEFAULT_STUDY_VARIANTS = tuple(v for v in STUDY_VARIANTS if v != "decoupled+prior")
+"""What ``dego study`` fits unless told otherwise (``--variants``)."""
 
 METRICS = (
+    "IoU t=0",
     "mIoU t=0",
     "HCM t=0",
+    "RayIoU t=0",
     "mIoU t!=0",
     "HCM t!=0",
     "vehicles t!=0",
@@ -62,7 +80,7 @@ class StudyConfig:
     budgets: tuple[int, ...] = (500, 2000)
     frames: int = 5
     iterations: int = 100
-    variants: tuple[str, ...] = STUDY_VARIANTS
+    variants: tuple[str, ...] = DEFAULT_STUDY_VARIANTS
     mask_prior: float = 0.1
 
     def __post_init__(self) -> None:
@@ -81,7 +99,9 @@ class StudyConfig:
             raise ValueError(f"mask_prior: expected a finite weight >= 0, got {self.mask_prior!r}")
 
 
-QUICK_STUDY = StudyConfig(seeds=(0, 1), budgets=(300,), frames=3, iterations=20)
+QUICK_STUDY = StudyConfig(
+    seeds=(0, 1), budgets=(300,), frames=3, iterations=20, variants=STUDY_VARIANTS
+)
 """``dego study --quick``: the tiny settings the tests run."""
 
 
@@ -111,24 +131,10 @@ def roc_auc(positive: Float[Tensor, " P"], negative: Float[Tensor, " Q"]) -> flo
     return total / (positive.numel() * negative.numel())
 
 
-def agent_of_gaussians(result: FitResult, clip: DemoClip) -> Tensor:
-    """``(N,)`` ground-truth agent instance id under each canonical Gaussian's mean at the
-    reference frame (0: none), looked up in the instance grid grown by one voxel."""
-    ids = clip.instances[clip.reference].float()
-    grown = F.max_pool3d(ids[None, None], 3, stride=1, padding=1)[0, 0].long()
-    ids = torch.where(clip.instances[clip.reference] > 0, clip.instances[clip.reference], grown)
-    index = clip.grid.world_to_index(result.model.means.detach())
-    inside = clip.grid.contains_index(index)
-    shape = torch.tensor(clip.grid.shape, device=index.device)
-    index = index.clamp(torch.zeros_like(shape), shape - 1)
-    found = ids[index[:, 0], index[:, 1], index[:, 2]]
-    return torch.where(inside, found, torch.zeros_like(found))
-
-
 def mask_statistics(result: FitResult, clip: DemoClip) -> tuple[dict[str, float], float]:
     """:data:`MASK_METRICS` of a fit, and its mean Gaussians per articulated agent."""
     mask = rigidity_mask(result).cpu()
-    agent = agent_of_gaussians(result, clip).cpu()
+    agent = agent_under(result.model.means, clip).cpu()
     index = (agent - 1).clamp_min(0)
     articulated = (agent > 0) & clip.agent_articulated.cpu()[index]
     vehicles = (agent > 0) & ~clip.agent_articulated.cpu()[index]
@@ -152,27 +158,32 @@ def run_study(
     *,
     progress: Callable[[str], None] | None = None,
 ) -> list[StudyRun]:
-    """Fit and score every (seed, budget, variant) of ``config``."""
+    """Fit and score every (seed, budget, variant) of ``config``. ``lifted-labels`` is
+    not fitted: each frame's pseudo labels lifted to 3D (the same for every budget)."""
     runs = []
     for seed in config.seeds:
-        clip = DemoClip.from_scene(
-            SyntheticScene(seed, num_frames=config.frames, frame_dt=DEMO_FRAME_DT)
-        )
+        scene = SyntheticScene(seed, num_frames=config.frames, frame_dt=DEMO_FRAME_DT)
+        clip = DemoClip.from_scene(scene)
+        lifted = None
         for budget in config.budgets:
             for variant in config.variants:
+                if variant == "lifted-labels":
+                    if lifted is None:
+                        lifted = score_clip(lifted_clip_labels(clip), clip).row()
+                    scores = _study_scores(lifted)
+                    empty = dict.fromkeys(MASK_METRICS, math.nan)
+                    runs.append(StudyRun(seed, budget, variant, scores, empty, math.nan, 0.0))
+                    continue
                 fit_config = FitConfig(
                     iterations=config.iterations,
                     num_gaussians=budget,
                     seed=seed,
                     mask_sparsity=config.mask_prior if variant == "decoupled+prior" else 0.0,
                 )
-                result = fit_scene(clip, variant.split("+")[0], fit_config)  # type: ignore[arg-type]
+                name = variant.split("+")[0]
+                result = fit_scene(clip, name, fit_config, scene=scene)  # type: ignore[arg-type]
                 row = score_clip(predict_clip(result.model, result.deformation, clip), clip).row()
-                scores = {
-                    "mIoU t=0": row["mIoU"],
-                    "HCM t=0": row["HCM"],
-                    **{name: row[name] for name in METRICS[2:]},
-                }
+                scores = _study_scores(row)
                 mask, per_agent = mask_statistics(result, clip)
                 run = StudyRun(seed, budget, variant, scores, mask, per_agent, result.seconds)
                 runs.append(run)
@@ -182,6 +193,11 @@ def run_study(
                         f"{scores['articulated t!=0']:.1f}, {result.seconds:.0f} s"
                     )
     return runs
+
+
+def _study_scores(row: dict[str, float]) -> dict[str, float]:
+    """:data:`METRICS` from a :meth:`~dego.demo.ClipScore.row` (``X t=0`` is its ``X``)."""
+    return {name: row[name.removesuffix(" t=0")] for name in METRICS}
 
 
 # Two-sided 95% quantiles of Student's t for 1..30 degrees of freedom.
@@ -263,12 +279,26 @@ def summarise(runs: Sequence[StudyRun]) -> dict[int, dict[str, dict[str, Interva
 
 
 COMPARISONS = (
-    ("decoupled", "rigid"),
-    ("decoupled+prior", "rigid"),
-    ("decoupled+prior", "decoupled"),
+    ("decoupled", "static"),
     ("rigid", "static"),
+    ("decoupled", "rigid"),
+    ("decoupled+prior", "decoupled"),
+    ("free-offsets", "static"),
+    ("true-motion", "static"),
+    ("static", "single-frame"),
+    ("decoupled", "single-frame"),
 )
-"""Paired differences the report gives (first - second, same seed and budget)."""
+"""Paired differences the report gives (first - second, same seed and budget).
+``static - single-frame`` is what the other frames' labels do to t = 0 without any
+motion model; ``decoupled - single-frame`` the same with the deformation."""
+
+PAIRED_METRICS = ("articulated t!=0", "vehicles t!=0", "HCM t=0", "mIoU t=0", "mIoU t!=0")
+"""The metrics of the paired-difference table."""
+
+
+def label(variant: str) -> str:
+    """How the report names ``variant`` (``true-motion``: ``true motion (oracle)``)."""
+    return ROW_NAMES.get(variant, variant)
 
 
 def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, dict]:
@@ -297,21 +327,29 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
         payload["summary"][budget] = {
             v: {m: dataclasses.asdict(i) for m, i in s.items()} for v, s in variants.items()
         }
-    lines += ["", "## Paired differences on articulated agents at t != 0", ""]
+    lines += ["", "## Paired differences (first - second, same seed), points", ""]
     lines += [
-        "| difference | budget | mean [95% CI] | n | sign resolved |",
-        "|---|---:|---|---:|---|",
+        "A `*` marks an interval that excludes 0 (the sign is resolved).",
+        "",
+        "| difference | budget | n | " + " | ".join(PAIRED_METRICS) + " |",
+        "|---|---:|---:|" + "---|" * len(PAIRED_METRICS),
     ]
     present = {r.variant for r in runs}
     for first, second in COMPARISONS:
         if first not in present or second not in present:
             continue
-        for budget, interval in paired_differences(runs, "articulated t!=0", first, second).items():
-            resolved = "yes" if interval.excludes_zero() else "no"
+        by_metric = {m: paired_differences(runs, m, first, second) for m in PAIRED_METRICS}
+        for budget in by_metric[PAIRED_METRICS[0]]:
+            cells = []
+            for metric in PAIRED_METRICS:
+                interval = by_metric[metric][budget]
+                cells.append(f"{interval}{' *' if interval.excludes_zero() else ''}")
+                key = f"{first} - {second} @ {budget}: {metric}"
+                payload["paired"][key] = dataclasses.asdict(interval)
+            n = by_metric[PAIRED_METRICS[0]][budget].n
             lines.append(
-                f"| {first} - {second} | {budget} | {interval} | {interval.n} | {resolved} |"
+                f"| {label(first)} - {label(second)} | {budget} | {n} | " + " | ".join(cells) + " |"
             )
-            payload["paired"][f"{first} - {second} @ {budget}"] = dataclasses.asdict(interval)
     lines += ["", "## Reading", "", *_reading(runs, summary)]
     return "\n".join(lines) + "\n", payload
 
@@ -321,7 +359,7 @@ def _interval_table(variants: dict[str, dict[str, Interval]], metrics: Sequence[
     rows = [head, "|---|" + "---|" * len(metrics)]
     for variant, values in variants.items():
         cells = [str(values[m]) for m in metrics]
-        rows.append(f"| {variant} | " + " | ".join(cells) + " |")
+        rows.append(f"| {label(variant)} | " + " | ".join(cells) + " |")
     return rows
 
 
@@ -329,20 +367,34 @@ def _reading(runs: Sequence[StudyRun], summary: dict) -> list[str]:
     """Plain sentences that follow from the numbers (no judgement beyond them)."""
     out = []
     present = {r.variant for r in runs}
-    if {"decoupled", "rigid"} <= present:
-        for budget, interval in paired_differences(
-            runs, "articulated t!=0", "decoupled", "rigid"
-        ).items():
+    for first, second, metric in (
+        ("decoupled", "static", "articulated t!=0"),
+        ("decoupled", "static", "vehicles t!=0"),
+        ("decoupled", "static", "HCM t=0"),
+        ("decoupled", "rigid", "articulated t!=0"),
+    ):
+        if not {first, second} <= present:
+            continue
+        for budget, interval in paired_differences(runs, metric, first, second).items():
             if interval.n < 2:
                 verdict = "one seed only: no interval"
             elif interval.excludes_zero():
                 better = "better" if interval.mean > 0 else "worse"
-                verdict = f"the interval excludes 0: decoupled is {better} than rigid here"
+                verdict = f"the interval excludes 0: {first} is {better} than {second} here"
             else:
                 verdict = "the interval includes 0: the sign is not resolved at this budget"
             out.append(
-                f"- {budget} Gaussians: decoupled - rigid on articulated agents at t != 0 is "
-                f"{interval} points; {verdict}."
+                f"- {budget} Gaussians: {first} - {second} on {metric} is {interval} points; "
+                f"{verdict}."
+            )
+    if {"true-motion", "static"} <= present:
+        for budget, interval in paired_differences(
+            runs, "articulated t!=0", "true-motion", "static"
+        ).items():
+            out.append(
+                f"- {budget} Gaussians: the ground-truth motion (oracle) gains {interval} "
+                "points on articulated agents at t != 0 over static: the room a motion "
+                "model has here."
             )
     for variant in ("decoupled", "decoupled+prior"):
         if variant not in present:
@@ -357,48 +409,51 @@ def _reading(runs: Sequence[StudyRun], summary: dict) -> list[str]:
     return out
 
 
+PICTURED_GAINS = ("rigid", "decoupled", "free-offsets", "true-motion")
+"""The variants whose paired gain over ``static`` the study picture shows."""
+
+
 def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
-    """Articulated-agent IoU at t != 0 per variant and budget, and the paired difference
-    decoupled - rigid, with 95% intervals (needs matplotlib)."""
+    """Articulated-agent IoU at t != 0 per variant and budget, and each variant's paired
+    gain over ``static``, with 95% intervals (needs matplotlib)."""
     from dego.viz import _new_figure, save_figure
 
     summary = summarise(runs)
-    figure = _new_figure((9.0, 3.4))
+    figure = _new_figure((10.0, 3.6))
     left, right = figure.subplots(1, 2)
     budgets = list(summary)
     variants = [v for v in STUDY_VARIANTS if any(r.variant == v for r in runs)]
-    width = 0.8 / max(len(variants), 1)
-    for k, variant in enumerate(variants):
-        intervals = [summary[b][variant]["articulated t!=0"] for b in budgets]
-        xs = [i + (k - (len(variants) - 1) / 2) * width for i in range(len(budgets))]
-        means = [iv.mean for iv in intervals]
-        errors = [
-            [iv.mean - iv.low if iv.n > 1 else 0 for iv in intervals],
-            [iv.high - iv.mean if iv.n > 1 else 0 for iv in intervals],
-        ]
-        left.bar(xs, means, width, yerr=errors, capsize=3, label=variant)
-    left.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])
-    left.set_ylabel("articulated IoU, t != 0 (%)")
-    left.legend(fontsize=7)
-    if {"decoupled", "rigid"} <= set(variants):
-        paired = paired_differences(runs, "articulated t!=0", "decoupled", "rigid")
-        for i, budget in enumerate(budgets):
-            iv = paired[budget]
-            right.errorbar(
-                [i],
-                [iv.mean],
-                yerr=[
-                    [iv.mean - iv.low if iv.n > 1 else 0],
-                    [iv.high - iv.mean if iv.n > 1 else 0],
-                ],
-                fmt="o",
-                capsize=4,
+
+    def bars(axis, intervals_of, names) -> None:
+        width = 0.8 / max(len(names), 1)
+        for k, variant in enumerate(names):
+            intervals = [intervals_of(b, variant) for b in budgets]
+            xs = [i + (k - (len(names) - 1) / 2) * width for i in range(len(budgets))]
+            errors = [
+                [iv.mean - iv.low if iv.n > 1 else 0 for iv in intervals],
+                [iv.high - iv.mean if iv.n > 1 else 0 for iv in intervals],
+            ]
+            axis.bar(
+                xs,
+                [iv.mean for iv in intervals],
+                width,
+                yerr=errors,
+                capsize=3,
+                label=label(variant),
             )
-        right.axhline(0, color="grey", linewidth=0.8)
-        right.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])
-        right.set_xlim(-0.5, len(budgets) - 0.5)
-        right.set_ylabel("decoupled - rigid (points)")
-    right.set_title("paired by seed, 95% CI", fontsize=9)
+        axis.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])
+
+    bars(left, lambda b, v: summary[b][v]["articulated t!=0"], variants)
+    left.set_ylabel("articulated IoU, t != 0 (%)")
+    left.legend(fontsize=6)
+    gains = [v for v in PICTURED_GAINS if v in variants] if "static" in variants else []
+    paired = {v: paired_differences(runs, "articulated t!=0", v, "static") for v in gains}
+    bars(right, lambda b, v: paired[v][b], gains)
+    right.axhline(0, color="grey", linewidth=0.8)
+    right.set_ylabel("gain over static (points)")
+    if gains:
+        right.legend(fontsize=6)
+    right.set_title("articulated t != 0, paired by seed, 95% CI", fontsize=9)
     return save_figure(figure, path, dpi=90)
 
 

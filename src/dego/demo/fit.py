@@ -14,25 +14,98 @@ from torch import Tensor
 
 from dego._checks import check_int, check_positive
 from dego.classes import CLASS_GROUPS
-from dego.deformation import DecoupledDeformation, deformation_loss
+from dego.data.synthetic import SyntheticScene
+from dego.deformation import DecoupledDeformation, DeformationLossWeights, deformation_loss
 from dego.demo.clip import DemoClip
 from dego.demo.model import (
     MOVABLE_CLASSES,
     Allocation,
     GaussianSceneModel,
+    LatentInit,
     check_initialisation,
 )
+from dego.demo.offsets import FrameOffsets, free_offsets, true_motion
 from dego.gaussians import GaussianSet
 from dego.splatting import SplatOutput, splat
 
-Variant = Literal["static", "rigid", "decoupled"]
+Variant = Literal["static", "rigid", "decoupled", "single-frame", "free-offsets", "true-motion"]
 VARIANTS: tuple[Variant, ...] = ("static", "rigid", "decoupled")
-"""``static``: no deformation at all (the canonical Gaussians are used at every frame;
-only the ego moves); ``rigid``: position offsets only (rigidity mask fixed at 0, the
-GaussianFlowOcc-style baseline); ``decoupled``: DeGO's learned rigid / nonrigid mask and
-full deformation."""
+"""The fitted variants. ``static``: no deformation at all (the canonical Gaussians are used
+at every frame; only the ego moves); ``rigid``: position offsets only (rigidity mask fixed
+at 0, the GaussianFlowOcc-style baseline); ``decoupled``: DeGO's learned rigid / nonrigid
+mask and full deformation."""
+
+REFERENCE_VARIANTS: tuple[Variant, ...] = ("single-frame", "free-offsets", "true-motion")
+"""Reference rows, not competitors. ``single-frame``: only the reference frame's views, as
+many steps as a multi-frame fit gives that frame (what the other frames' labels add at
+t = 0); ``free-offsets``: a position offset per (frame, Gaussian) optimised directly, no
+network and no regulariser (what a per-Gaussian lookup table reaches); ``true-motion``:
+the agents' true motion from the synthetic scene held fixed (**uses the ground truth**: a
+ceiling for position offsets)."""
+
+ROW_NAMES: dict[str, str] = {
+    "lifted-labels": "lifted labels (no learning)",
+    "free-offsets": "free offsets",
+    "true-motion": "true motion (oracle)",
+}
+"""How the tables name a variant where it differs from its id."""
+
+DeformClasses = Literal["all", "movable"]
+OffsetGradients = Literal["raw", "balanced"]
+
+
+class _BalancedGradient(torch.autograd.Function):
+    """Identity on the deformed means; in backward the part of the gradient that reaches
+    the deformation is rescaled per Gaussian (see :func:`balance_deformation_gradients`),
+    while the canonical parameters still get the unchanged gradient."""
+
+    @staticmethod
+    def forward(ctx, deformed: Tensor, canonical: Tensor, keep: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(keep)
+        return deformed.clone()
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, Tensor, None]:  # type: ignore[override]
+        (keep,) = ctx.saved_tensors
+        norm = grad.norm(dim=-1, keepdim=True)  # (1, N, 1)
+        active = keep[..., None] & (norm > 0)
+        scale = norm[active].mean() if bool(active.any()) else norm.new_ones(())
+        balanced = torch.where(active, grad / norm.clamp_min(1e-30) * scale, grad)
+        return balanced, grad - balanced, None
+
+
+def balance_deformation_gradients(
+    deformed: GaussianSet, canonical: GaussianSet, keep: Tensor | None
+) -> GaussianSet:
+    """``deformed`` unchanged, except that the position gradient flowing back into the
+    deformation is equalised over Gaussians: each Gaussian in ``keep`` (``(1, N)`` bool;
+    ``None``: all) passes on its gradient direction at the mean gradient norm. The
+    canonical parameters' gradient is exactly the raw one.
+
+    Why: a shared network sums per-Gaussian gradients whose sizes differ by orders of
+    magnitude (a Gaussian near a camera covers thousands of pixels, one on a pedestrian a
+    few), so the few Gaussians of a small moving agent hardly move it; free per-Gaussian
+    parameters do not have this problem because Adam normalises each one separately.
+    """
+    if keep is None:
+        keep = torch.ones(deformed.means.shape[:-1], dtype=torch.bool, device=deformed.device)
+    means = _BalancedGradient.apply(deformed.means, canonical.means, keep)
+    return deformed.replace(means=means)
+
 
 LOSS_TERMS = ("total", "semantics", "depth", "deformation")
+
+
+_DEFAULT_LR = {
+    "means": 0.01,
+    "quats": 0.01,
+    "log_scales": 0.01,
+    "opacity_logits": 0.05,
+    "semantic_logits": 0.03,
+    "latent": 0.01,
+    "deformation": 0.01,
+    "offsets": 0.05,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,23 +117,41 @@ class FitConfig:
         num_gaussians: canonical Gaussians. latent_dim: their latent feature channels.
         hidden_dim, depth, head_hidden: the deformation network's size (the paper uses
             256 / 6 / 256; the demo is smaller to run in minutes on a CPU).
-        lr: Adam learning rates per parameter group.
+        lr: Adam learning rates per parameter group (missing groups take the defaults;
+            ``"offsets"``: the ``free-offsets`` reference's per-frame offsets).
         depth_weight: weight of the L1 depth loss (per metre).
-        deformation_weight: weight of ``deformation_loss(...)["total"]``.
+        deformation_weight: weight of ``deformation_loss(...)["total"]`` (0.001; it was 0.1
+            before dego 0.3: then ``L_reg``, a mean over *Gaussians*, cost ~0.08 at the
+            agents' true motion against a best rendering gain of ~0.002, a mean over
+            *pixels*, and the fit kept every agent still).
         seed: seeds the initialisation and the frame order.
         cameras_per_step: cameras of the frame rendered per step, a seeded random subset
             (``None``: all six). Fewer cameras make a step cheaper (3: half the cost).
-        allocation, class_balance, semantic_prior: the initialisation of
+        allocation, class_balance, semantic_prior, latent_init: the initialisation of
             :meth:`GaussianSceneModel.from_clip`.
-        warmup: the first ``warmup`` fraction of iterations, frames other than the
-            reference train the deformation (and latent features) only: the canonical
-            Gaussians get no gradient from them, so that a moving agent is not explained
-            away (made transparent or relabelled) before the deformation has learnt to
-            follow it.
-        freeze_movable: at frames other than the reference, the canonical Gaussians
-            whose most likely class is movable (:data:`MOVABLE_CLASSES`) get no gradient
-            for the whole fit: where such an agent is at time t is the deformation's job,
-            while static classes still learn from every frame's views.
+        deform: which Gaussians the deformation may move. ``"movable"`` (default): those
+            whose most likely class is movable (:data:`MOVABLE_CLASSES`, read from the
+            fitted semantic logits, never the ground truth), the others keep their
+            canonical parameters at every frame (:meth:`DeformationOutput.gated`);
+            ``"all"``: every Gaussian, as in the paper.
+        pos_scale: the network's position scale in metres (:class:`~dego.DecoupledDeformation`;
+            4 m; ``None``: the network's default, 40 m): positions are divided by it before
+            the encoding, so a smaller value tells nearby agents apart more sharply.
+        offset_gradients: ``"raw"``, or ``"balanced"``: the position gradient that
+            reaches the deformation is equalised over the deformable Gaussians
+            (:func:`balance_deformation_gradients`); the free offsets and the oracle do
+            not need it (and ignore it: their offsets have no shared network).
+        regulariser: how ``L_reg`` is reduced (:func:`~dego.deformation_loss`'s
+            ``reduction``): ``"mean"`` over every Gaussian (the paper's) or ``"sum"``.
+        warmup: protection (off by default). The first ``warmup`` fraction of
+            iterations, frames other than the reference train the deformation (and
+            latent features) only: the canonical Gaussians get no gradient from them.
+        freeze_movable: protection (off by default). At frames other than the
+            reference, the canonical Gaussians whose most likely class is movable get no
+            gradient for the whole fit. With it (and the warm-up) a moving agent cannot be
+            explained away at t = 0 by the other frames, so every variant, ``static``
+            included, keeps the same agents at t = 0 and the t = 0 effect of the
+            deformation cannot show.
         mask_sparsity: weight of an optional prior ``mean(m)`` on the rigidity mask that
             prefers rigid unless shape change is needed (0: the paper's formulation,
             which has no such term). Only the ``decoupled`` variant has a mask.
@@ -72,27 +163,22 @@ class FitConfig:
     hidden_dim: int = 64
     depth: int = 3
     head_hidden: int = 64
-    lr: dict[str, float] = dataclasses.field(
-        default_factory=lambda: {
-            "means": 0.01,
-            "quats": 0.01,
-            "log_scales": 0.01,
-            "opacity_logits": 0.05,
-            "semantic_logits": 0.03,
-            "latent": 0.01,
-            "deformation": 0.01,
-        }
-    )
+    lr: dict[str, float] = dataclasses.field(default_factory=lambda: dict(_DEFAULT_LR))
     depth_weight: float = 0.1
-    deformation_weight: float = 0.1
+    deformation_weight: float = 0.001
     seed: int = 0
     cameras_per_step: int | None = 3
     allocation: Allocation = "class_balanced"
     class_balance: float = 0.3
     semantic_prior: float = 0.5
+    latent_init: LatentInit = "segments"
     mask_sparsity: float = 0.0
-    warmup: float = 0.5
-    freeze_movable: bool = True
+    deform: DeformClasses = "movable"
+    regulariser: str = "mean"
+    pos_scale: float | None = 4.0
+    offset_gradients: OffsetGradients = "balanced"
+    warmup: float = 0.0
+    freeze_movable: bool = False
 
     def __post_init__(self) -> None:
         check_int("iterations", self.iterations, 0)
@@ -101,11 +187,31 @@ class FitConfig:
             check_int(name, getattr(self, name), 0 if name in ("latent_dim", "seed") else 1)
         for name, value in self.lr.items():
             check_positive(f"lr[{name!r}]", value)
+        unknown = sorted(set(self.lr) - set(_DEFAULT_LR))
+        if unknown:
+            raise ValueError(
+                f"lr: unknown groups {unknown}; expected some of {sorted(_DEFAULT_LR)}"
+            )
+        object.__setattr__(self, "lr", {**_DEFAULT_LR, **self.lr})
         if self.cameras_per_step is not None:
             check_int("cameras_per_step", self.cameras_per_step, 1)
         check_initialisation(
-            self.allocation, self.class_balance, self.semantic_prior, "class_balance"
+            self.allocation,
+            self.class_balance,
+            self.semantic_prior,
+            "class_balance",
+            self.latent_init,
         )
+        if self.pos_scale is not None:
+            check_positive("pos_scale", self.pos_scale)
+        if self.deform not in ("all", "movable"):
+            raise ValueError(f"deform: expected 'all' or 'movable', got {self.deform!r}")
+        if self.offset_gradients not in ("raw", "balanced"):
+            raise ValueError(
+                f"offset_gradients: expected 'raw' or 'balanced', got {self.offset_gradients!r}"
+            )
+        if self.regulariser not in ("mean", "sum"):
+            raise ValueError(f"regulariser: expected 'mean' or 'sum', got {self.regulariser!r}")
         if not 0 <= self.warmup <= 1:
             raise ValueError(f"warmup: expected a fraction in [0, 1], got {self.warmup!r}")
         for name in ("depth_weight", "deformation_weight", "mask_sparsity"):
@@ -156,14 +262,33 @@ def mask_by_group(mask: Float[Tensor, " N"], model: GaussianSceneModel) -> dict[
 
 
 def build_deformation(
-    variant: Variant, config: FitConfig, clip: DemoClip
-) -> DecoupledDeformation | None:
-    """The ``paper``-preset network of ``variant`` (``rigid``: ``fixed_mask=0``;
-    ``static``: none)."""
-    if variant not in VARIANTS:
-        raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
-    if variant == "static":
+    variant: Variant,
+    config: FitConfig,
+    clip: DemoClip,
+    *,
+    means: Tensor | None = None,
+    scene: SyntheticScene | None = None,
+) -> DecoupledDeformation | FrameOffsets | None:
+    """The deformation of ``variant``: the ``paper``-preset network (``rigid``:
+    ``fixed_mask=0``), :func:`~dego.demo.offsets.free_offsets` (``free-offsets``), the
+    oracle :func:`~dego.demo.offsets.true_motion` (``true-motion``: needs the canonical
+    ``means`` and the clip's ``scene``), or ``None`` (``static``, ``single-frame``)."""
+    if variant not in VARIANTS + REFERENCE_VARIANTS:
+        raise ValueError(
+            f"variant: expected one of {VARIANTS + REFERENCE_VARIANTS}, got {variant!r}"
+        )
+    if variant in ("static", "single-frame"):
         return None
+    if variant == "true-motion":
+        if scene is None or means is None:
+            raise ValueError(
+                "scene: the true-motion oracle needs the SyntheticScene of the clip (and the "
+                "canonical means); pass scene=..."
+            )
+        return true_motion(scene, clip, means)
+    if variant == "free-offsets":
+        n = config.num_gaussians if means is None else means.shape[0]
+        return free_offsets(clip, n)
     largest_offset = float(clip.times.abs().max().clamp_min(1))
     return DecoupledDeformation(
         config.latent_dim,
@@ -171,34 +296,57 @@ def build_deformation(
         depth=config.depth,
         head_hidden=config.head_hidden,
         time_scale=largest_offset,
+        pos_scale=config.pos_scale,
         fixed_mask=0.0 if variant == "rigid" else None,
+        loss_weights=DeformationLossWeights(reduction=config.regulariser),  # type: ignore[arg-type]
     )
 
 
+def deformable(model: GaussianSceneModel | _FrozenCanonical) -> Tensor | None:
+    """``(1, N)`` bool: the Gaussians ``model.deform_classes`` lets the deformation move
+    (their most likely class is one of them), or ``None`` when every Gaussian may move."""
+    classes = model.deform_classes
+    if classes is None:
+        return None
+    labels = model.semantic_logits.detach().argmax(-1)
+    return torch.isin(labels, torch.tensor(classes, device=labels.device))[None]
+
+
 def gaussians_at(
-    model: GaussianSceneModel,
-    deformation: DecoupledDeformation | None,
+    model: GaussianSceneModel | _FrozenCanonical,
+    deformation: DecoupledDeformation | FrameOffsets | None,
     clip: DemoClip,
     index: int,
     mask_sparsity: float = 0.0,
+    offset_gradients: OffsetGradients = "raw",
 ) -> tuple[GaussianSet, dict[str, Tensor] | None]:
     """The ``(1, N)`` Gaussians at frame ``index`` (world coordinates) and their
     deformation losses.
 
     The reference frame is the canonical set itself (no deformation, no loss); every
     other frame deforms it to that frame's time offset (``deformation=None``: it does
-    not, the ``static`` variant). ``mask_sparsity`` adds ``mask_sparsity * mean(m)`` to
-    the loss ``total`` (also reported as ``"sparsity"``).
+    not, the ``static`` variant). Where ``model.deform_classes`` is set, only the
+    Gaussians whose most likely class is one of them are deformed
+    (:meth:`~dego.DeformationOutput.gated`; the losses see zero deltas elsewhere).
+    ``mask_sparsity`` adds ``mask_sparsity * mean(m)`` to the loss ``total`` (also
+    reported as ``"sparsity"``). ``offset_gradients="balanced"``: see
+    :func:`balance_deformation_gradients` (values are unchanged, only gradients).
     """
     canonical = model.gaussians()
     if index == clip.reference or deformation is None:
         return canonical, None
     output = deformation(canonical, model.latent[None], clip.times[index : index + 1])
+    keep = deformable(model)
+    if keep is not None:
+        output = output.gated(keep, canonical)
     losses = deformation_loss(output)
     if deformation.fixed_mask is None and mask_sparsity > 0:
         losses["sparsity"] = output.rigid_mask.mean()
         losses["total"] = losses["total"] + mask_sparsity * losses["sparsity"]
-    return output.at(0), losses
+    deformed = output.at(0)
+    if offset_gradients == "balanced" and deformed.means.requires_grad:
+        deformed = balance_deformation_gradients(deformed, canonical, keep)
+    return deformed, losses
 
 
 def render(
@@ -245,38 +393,51 @@ def fit_scene(
     variant: Variant,
     config: FitConfig | None = None,
     *,
+    scene: SyntheticScene | None = None,
     progress: Callable[[int, dict[str, float]], None] | None = None,
 ) -> FitResult:
-    """Fit canonical Gaussians + a ``variant`` deformation network to ``clip`` with Adam.
+    """Fit canonical Gaussians + a ``variant`` deformation to ``clip`` with Adam.
 
-    Each iteration renders one frame (a seeded shuffled cycle over the clip) into its
+    Each iteration renders one frame (a seeded shuffled cycle over the clip; only the
+    reference frame for ``single-frame``, for ``round(iterations / T)`` steps) into its
     cameras and minimises ``semantics + depth_weight * depth + deformation_weight *
-    deformation``. ``progress(iteration, losses)`` is called after every step.
+    deformation``. ``scene``: the clip's :class:`~dego.data.SyntheticScene`, needed by the
+    ``true-motion`` oracle only. ``progress(iteration, losses)`` is called after every step.
     """
     config = config or FitConfig()
     generator = torch.Generator().manual_seed(config.seed)
     model = initial_model(clip, config, generator)
     torch.manual_seed(config.seed)  # the deformation network's initial weights
-    deformation = build_deformation(variant, config, clip)
+    deformation = build_deformation(variant, config, clip, means=model.means.detach(), scene=scene)
     if deformation is not None:
         deformation = deformation.to(clip.depth.device)
+    if variant in ("rigid", "decoupled", "free-offsets") and config.deform == "movable":
+        model.deform_classes = MOVABLE_CLASSES
     groups = [
         {"params": [getattr(model, name)], "lr": config.lr[name]}
         for name in ("means", "quats", "log_scales", "opacity_logits", "semantic_logits")
     ]
     groups.append({"params": [model.latent], "lr": config.lr["latent"]})
-    if deformation is not None:
-        groups.append({"params": list(deformation.parameters()), "lr": config.lr["deformation"]})
+    trainable = [] if deformation is None else [p for p in deformation.parameters()]
+    if trainable:
+        rate = config.lr["offsets" if variant == "free-offsets" else "deformation"]
+        groups.append({"params": trainable, "lr": rate})
     optimizer = torch.optim.Adam(groups)
 
+    single = variant == "single-frame"
+    iterations = round(config.iterations / clip.num_frames) if single else config.iterations
     history: dict[str, list[float]] = {term: [] for term in LOSS_TERMS}
     order: list[int] = []
     start = time.perf_counter()
-    for iteration in range(config.iterations):
+    for iteration in range(iterations):
         if not order:
-            order = torch.randperm(clip.num_frames, generator=generator).tolist()
+            order = (
+                [clip.reference]
+                if single
+                else torch.randperm(clip.num_frames, generator=generator).tolist()
+            )
         index = order.pop()
-        frozen = iteration < config.warmup * config.iterations
+        frozen = iteration < config.warmup * iterations
         losses = _frame_losses(model, deformation, clip, index, config, generator, frozen)
         losses["total"] = (
             losses["semantics"]
@@ -309,8 +470,9 @@ def _frame_losses(
     deformation_model: GaussianSceneModel | _FrozenCanonical = model
     if index != clip.reference and (frozen or config.freeze_movable):
         deformation_model = _FrozenCanonical(model, movable_only=not frozen)
+    balance = config.offset_gradients if isinstance(deformation, DecoupledDeformation) else "raw"
     gaussians, deformation_terms = gaussians_at(
-        deformation_model, deformation, clip, index, config.mask_sparsity
+        deformation_model, deformation, clip, index, config.mask_sparsity, balance
     )
     num_cameras = clip.world_to_cam.shape[1]
     cameras = None
@@ -334,7 +496,8 @@ class _FrozenCanonical:
     them, or (``movable_only``) those whose most likely class is movable."""
 
     def __init__(self, model: GaussianSceneModel, movable_only: bool = False) -> None:
-        self.latent = model.latent
+        self.latent, self.semantic_logits = model.latent, model.semantic_logits
+        self.deform_classes = model.deform_classes
         self._model, self._movable_only = model, movable_only
 
     def gaussians(self) -> GaussianSet:
@@ -363,5 +526,6 @@ def initial_model(
         allocation=config.allocation,
         balance=config.class_balance,
         semantic_prior=config.semantic_prior,
+        latent_init=config.latent_init,
         generator=generator,
     )

@@ -22,6 +22,10 @@ MOVABLE_CLASSES = tuple(sorted(VEHICLE_CLASSES + HUMAN_CENTRIC_CLASSES))
 pedestrian): where they are depends on the time of the frame."""
 Allocation = Literal["area", "class_balanced"]
 ALLOCATIONS: tuple[Allocation, ...] = ("area", "class_balanced")
+LatentInit = Literal["random", "segments"]
+LATENT_INITS: tuple[LatentInit, ...] = ("random", "segments")
+SEGMENT_RADIUS = 1.0
+"""Metres: Gaussians of one pseudo class closer than this are linked into one segment."""
 
 
 class GaussianSceneModel(nn.Module):
@@ -38,6 +42,12 @@ class GaussianSceneModel(nn.Module):
         latent_dim: channels of the latent features fed to the deformation network.
         opacity: initial opacity of every Gaussian.
         generator: seeds the small random semantic logits and latent features.
+
+    Attributes:
+        deform_classes: ``None`` (default): a deformation may move every Gaussian; a
+            tuple of labels: only the Gaussians whose most likely class is one of them
+            (class gating, see :func:`~dego.demo.gaussians_at`; :func:`~dego.demo.fit_scene`
+            sets :data:`MOVABLE_CLASSES` under ``FitConfig(deform="movable")``).
     """
 
     def __init__(
@@ -73,6 +83,7 @@ class GaussianSceneModel(nn.Module):
         )
         self.semantic_logits = nn.Parameter(small_normal(n, NUM_OCCUPIED))
         self.latent = nn.Parameter(10 * small_normal(n, latent_dim))
+        self.deform_classes: tuple[int, ...] | None = None
 
     @classmethod
     def from_clip(
@@ -84,6 +95,7 @@ class GaussianSceneModel(nn.Module):
         allocation: Allocation = "class_balanced",
         balance: float = 0.3,
         semantic_prior: float = 0.5,
+        latent_init: LatentInit = "random",
         generator: torch.Generator | None = None,
     ) -> GaussianSceneModel:
         """Gaussians on the clip's pseudo-depth surfaces (the only geometry it is given).
@@ -104,10 +116,19 @@ class GaussianSceneModel(nn.Module):
 
         ``semantic_prior`` p: a Gaussian's class probabilities start at
         ``p * onehot(pseudo label of its pixel) + (1 - p) / 17`` (0: near uniform, the
-        labels are learnt from scratch). Both use the pseudo labels only.
+        labels are learnt from scratch).
+
+        ``latent_init``: ``"random"``: small independent latent features (std 0.1);
+        ``"segments"``: the Gaussians are split into segments (:func:`segment_ids`:
+        linked when of the same pseudo class and closer than :data:`SEGMENT_RADIUS`), and
+        each segment's Gaussians start from one shared random code (std 1) plus the small
+        per-Gaussian noise, so a deformation network can tell one object from another
+        the way a feed-forward model's image features do.
+
+        Everything here uses the pseudo labels only.
         """
         check_int("num_gaussians", num_gaussians, 1)
-        check_initialisation(allocation, balance, semantic_prior)
+        check_initialisation(allocation, balance, semantic_prior, latent_init=latent_init)
         labels = clip.semantics
         surface = clip.supervised & (clip.depth > 0) & (labels < NUM_OCCUPIED)
         if allocation == "class_balanced":
@@ -139,6 +160,11 @@ class GaussianSceneModel(nn.Module):
             latent_dim=latent_dim,
             generator=generator,
         )
+        if latent_init == "segments" and latent_dim > 0:
+            segments = segment_ids(means, pixel_labels[pick], SEGMENT_RADIUS)
+            codes = torch.randn(num_gaussians, latent_dim, generator=generator, dtype=means.dtype)
+            with torch.no_grad():
+                model.latent.add_(codes.to(means.device)[segments])
         if semantic_prior > 0:
             prior = torch.full_like(model.semantic_logits, (1 - semantic_prior) / NUM_OCCUPIED)
             prior[torch.arange(num_gaussians), pixel_labels[pick]] += semantic_prior
@@ -162,7 +188,11 @@ class GaussianSceneModel(nn.Module):
 
 
 def check_initialisation(
-    allocation: str, balance: float, semantic_prior: float, balance_name: str = "balance"
+    allocation: str,
+    balance: float,
+    semantic_prior: float,
+    balance_name: str = "balance",
+    latent_init: str = "random",
 ) -> None:
     """The argument checks of :meth:`GaussianSceneModel.from_clip` (``balance_name``: how
     the caller names ``balance``), shared with :class:`~dego.demo.FitConfig`."""
@@ -172,6 +202,8 @@ def check_initialisation(
         raise ValueError(f"{balance_name}: expected a number in [0, 1], got {balance!r}")
     if not 0 <= semantic_prior < 1:
         raise ValueError(f"semantic_prior: expected a number in [0, 1), got {semantic_prior!r}")
+    if latent_init not in LATENT_INITS:
+        raise ValueError(f"latent_init: expected one of {LATENT_INITS}, got {latent_init!r}")
 
 
 def nearest_neighbour_distance(
@@ -186,3 +218,38 @@ def nearest_neighbour_distance(
         distances = torch.cdist(points[start : start + chunk], points)
         parts.append(distances.topk(k + 1, largest=False).values[:, 1:].mean(-1))
     return torch.cat(parts)
+
+
+def segment_ids(
+    points: Float[Tensor, "N 3"],
+    labels: Tensor,
+    radius: float,
+    k: int = 8,
+    chunk: int = 2048,
+) -> Tensor:
+    """``(N,)`` segment index of each point: the connected components of the graph that
+    links each point to those of its ``k`` nearest neighbours with the same label closer
+    than ``radius`` (a component is numbered by its smallest member). Label propagation,
+    one vectorised min-reduction per round, until nothing changes."""
+    n = points.shape[0]
+    k = min(k, n - 1)
+    segment = torch.arange(n, device=points.device)
+    if k < 1:
+        return segment
+    sources, targets = [], []
+    for start in range(0, n, chunk):
+        distances = torch.cdist(points[start : start + chunk], points)
+        nearest = distances.topk(k + 1, largest=False)
+        rows = torch.arange(start, start + nearest.indices.shape[0], device=points.device)
+        rows = rows[:, None].expand_as(nearest.indices)
+        linked = (nearest.values < radius) & (labels[rows] == labels[nearest.indices])
+        sources.append(rows[linked])
+        targets.append(nearest.indices[linked])
+    source = torch.cat(sources + targets)  # both directions
+    target = torch.cat(targets + sources)
+    for _ in range(n):  # at most the graph's diameter rounds; usually tens
+        pulled = segment.scatter_reduce(0, target, segment[source], "amin")
+        if torch.equal(pulled, segment):
+            break
+        segment = pulled
+    return segment
