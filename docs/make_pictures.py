@@ -18,10 +18,10 @@ synthetic_cameras.png,
 synthetic_bev.png
 w1_depth_semantics.png             ``python benchmarks/bench_splat.py --skip-w2
                                    --repeats 1 --png docs/images/w1_depth_semantics.png``
-demo_bev_{static,rigid,            ``dego demo --out /tmp/demo`` (seed 0, full run), then
-decoupled}.png,                    copy ``bev_*.png``, ``camera_decoupled.png`` and
-demo_camera_decoupled.png,         ``losses.png`` to ``docs/images/demo_*.png``
-demo_losses.png
+demo_bev_{static,rigid,            ``OMP_NUM_THREADS=1 dego demo --out /tmp/demo`` (seed 0,
+decoupled,true-motion}.png,        full run), then copy ``bev_*.png``,
+demo_camera_decoupled.png,         ``camera_decoupled.png`` and ``losses.png`` to
+demo_losses.png                    ``docs/images/demo_*.png``
 study.png                          ``OMP_NUM_THREADS=1 dego study --out /tmp/study``, copy
                                    ``study.png``
 =================================  =====================================================

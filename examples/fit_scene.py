@@ -4,9 +4,10 @@ The core of ``dego demo``, written out step by step for one variant:
 
 1. render a synthetic clip: six cameras per frame, pseudo depth and pseudo semantics;
 2. put learnable canonical Gaussians on the pseudo-depth surfaces (reference time);
-3. each step, deform them to one frame's time with DecoupledDeformation, splat class
-   probabilities and depth into that frame's cameras, and minimise cross-entropy + L1
-   depth + the deformation losses with Adam;
+3. each step, deform them to one frame's time with DecoupledDeformation (only the
+   Gaussians whose most likely class is movable; each of them passes the same share of
+   gradient to the network), splat class probabilities and depth into that frame's
+   cameras, and minimise cross-entropy + L1 depth + the (weak) deformation losses with Adam;
 4. voxelise the Gaussians at every frame (deformed to its time, in its ego coordinates)
    and score them against that frame's ground-truth grid, used for nothing else.
 
@@ -23,9 +24,11 @@ import torch
 import dego
 from dego.demo import (
     DEMO_FRAME_DT,
+    MOVABLE_CLASSES,
     DemoClip,
     FitConfig,
     GaussianSceneModel,
+    balance_deformation_gradients,
     build_deformation,
     format_table,
     predict_clip,
@@ -50,11 +53,17 @@ def main() -> None:
     print(f"clip: offsets {scene.offsets}, {clip.depth.shape[1]} cameras, {clip.image_size}")
 
     # 2. Canonical Gaussians (means, quats, scales, opacities, semantic logits, latent
-    # features) on the pseudo-depth surfaces, and the deformation network.
+    # features) on the pseudo-depth surfaces, and the deformation network. The latent
+    # features start from one random code per segment (Gaussians of one pseudo class
+    # closer than 1 m), so that the network can tell one agent from another.
     config = FitConfig(iterations=args.iterations, num_gaussians=args.gaussians, seed=args.seed)
     model = GaussianSceneModel.from_clip(
-        clip, config.num_gaussians, generator=torch.Generator().manual_seed(args.seed)
+        clip,
+        config.num_gaussians,
+        latent_init=config.latent_init,
+        generator=torch.Generator().manual_seed(args.seed),
     )
+    model.deform_classes = MOVABLE_CLASSES  # what predict_clip gates by, as the fit does
     deformation = build_deformation(args.variant, config, clip)
     initial_labels = predict_clip(model, None, clip)  # no deformation: a static scene
     optimizer = torch.optim.Adam(
@@ -69,19 +78,22 @@ def main() -> None:
         ]
     )
 
-    # 3. The fit: one frame per step. During the warm-up, frames other than the reference
-    # train only the deformation: the canonical Gaussians are detached there, so moving
-    # agents are not made transparent before the deformation can follow them.
+    # 3. The fit: one frame per step. At the other frames only the Gaussians whose most
+    # likely class is movable are deformed (class gating), and the position gradient
+    # that reaches the network is equalised over them: otherwise the few Gaussians of a
+    # small agent, each covering a few pixels, are outvoted by large ones.
     frames = torch.Generator().manual_seed(args.seed)
+    movable = torch.tensor(MOVABLE_CLASSES)
     for step in range(args.iterations):
         index = int(torch.randint(clip.num_frames, (), generator=frames))
         gaussians = model.gaussians()  # (1, N), features = class probabilities (1, N, 17)
-        if step < config.warmup * args.iterations and index != clip.reference:
-            gaussians = gaussians.detach()
         deformation_term = torch.zeros(())
         if index != clip.reference:  # other frames: deform the canonical set to their time
-            deformed = deformation(gaussians, model.latent[None], clip.times[index : index + 1])
-            gaussians = deformed.at(0)
+            canonical = gaussians
+            keep = torch.isin(model.semantic_logits.detach().argmax(-1), movable)[None]
+            deformed = deformation(canonical, model.latent[None], clip.times[index : index + 1])
+            deformed = deformed.gated(keep, canonical)
+            gaussians = balance_deformation_gradients(deformed.at(0), canonical, keep)
             deformation_term = dego.deformation_loss(deformed)["total"]
         rendered = dego.splat(
             gaussians,

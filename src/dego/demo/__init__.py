@@ -7,6 +7,7 @@ and a :class:`~dego.DecoupledDeformation` to the pseudo labels; :func:`predict_c
 and :func:`score_labels` at the reference frame).
 """
 
+from dego.demo.balance import balance_deformation_gradients
 from dego.demo.clip import DEMO_FRAME_DT, DemoClip, backproject
 from dego.demo.evaluate import (
     DYNAMIC_GROUPS,
@@ -28,7 +29,6 @@ from dego.demo.fit import (
     VARIANTS,
     FitConfig,
     FitResult,
-    balance_deformation_gradients,
     build_deformation,
     deformable,
     fit_scene,

@@ -13,11 +13,11 @@ from dego.grid import VoxelGrid
 from dego.metrics.rayiou import lidar_origins
 
 DEMO_FRAME_DT = 0.2
-"""Seconds between the demo's frames (5 Hz; nuScenes keyframes are 2 Hz). Fitting one
-scene by gradient descent has no correspondences: it can only follow an agent whose
-image overlaps between neighbouring frames. At 0.2 s a pedestrian moves about 0.3 m and
-a cyclist about 1 m, less than their size; at 0.5 s the cyclists move 2-3 m and the fit
-loses them (measured on development seeds)."""
+"""Seconds between the demo's frames (5 Hz; nuScenes keyframes are 2 Hz). At 0.2 s an
+agent moves less than its own size between neighbouring frames (a pedestrian about
+0.3 m, a cyclist about 1 m), so its rendered and observed images overlap and the
+rendering loss pulls the fitted agent towards its new position; at 0.5 s the cyclists
+move 2-3 m and the fit loses them (measured on development seeds)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -16,6 +16,7 @@ from dego._checks import check_int, check_positive
 from dego.classes import CLASS_GROUPS
 from dego.data.synthetic import SyntheticScene
 from dego.deformation import DecoupledDeformation, DeformationLossWeights, deformation_loss
+from dego.demo.balance import balance_deformation_gradients
 from dego.demo.clip import DemoClip
 from dego.demo.model import (
     MOVABLE_CLASSES,
@@ -53,46 +54,6 @@ ROW_NAMES: dict[str, str] = {
 DeformClasses = Literal["all", "movable"]
 OffsetGradients = Literal["raw", "balanced"]
 
-
-class _BalancedGradient(torch.autograd.Function):
-    """Identity on the deformed means; in backward the part of the gradient that reaches
-    the deformation is rescaled per Gaussian (see :func:`balance_deformation_gradients`),
-    while the canonical parameters still get the unchanged gradient."""
-
-    @staticmethod
-    def forward(ctx, deformed: Tensor, canonical: Tensor, keep: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.save_for_backward(keep)
-        return deformed.clone()
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, Tensor, None]:  # type: ignore[override]
-        (keep,) = ctx.saved_tensors
-        norm = grad.norm(dim=-1, keepdim=True)  # (1, N, 1)
-        active = keep[..., None] & (norm > 0)
-        scale = norm[active].mean() if bool(active.any()) else norm.new_ones(())
-        balanced = torch.where(active, grad / norm.clamp_min(1e-30) * scale, grad)
-        return balanced, grad - balanced, None
-
-
-def balance_deformation_gradients(
-    deformed: GaussianSet, canonical: GaussianSet, keep: Tensor | None
-) -> GaussianSet:
-    """``deformed`` unchanged, except that the position gradient flowing back into the
-    deformation is equalised over Gaussians: each Gaussian in ``keep`` (``(1, N)`` bool;
-    ``None``: all) passes on its gradient direction at the mean gradient norm. The
-    canonical parameters' gradient is exactly the raw one.
-
-    Why: a shared network sums per-Gaussian gradients whose sizes differ by orders of
-    magnitude (a Gaussian near a camera covers thousands of pixels, one on a pedestrian a
-    few), so the few Gaussians of a small moving agent hardly move it; free per-Gaussian
-    parameters do not have this problem because Adam normalises each one separately.
-    """
-    if keep is None:
-        keep = torch.ones(deformed.means.shape[:-1], dtype=torch.bool, device=deformed.device)
-    means = _BalancedGradient.apply(deformed.means, canonical.means, keep)
-    return deformed.replace(means=means)
-
-
 LOSS_TERMS = ("total", "semantics", "depth", "deformation")
 
 
@@ -121,7 +82,7 @@ class FitConfig:
             ``"offsets"``: the ``free-offsets`` reference's per-frame offsets).
         depth_weight: weight of the L1 depth loss (per metre).
         deformation_weight: weight of ``deformation_loss(...)["total"]`` (0.001; it was 0.1
-            before dego 0.3: then ``L_reg``, a mean over *Gaussians*, cost ~0.08 at the
+            in dego 0.1.0: then ``L_reg``, a mean over *Gaussians*, cost ~0.08 at the
             agents' true motion against a best rendering gain of ~0.002, a mean over
             *pixels*, and the fit kept every agent still).
         seed: seeds the initialisation and the frame order.
