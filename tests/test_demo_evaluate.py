@@ -229,7 +229,10 @@ def test_mask_sparsity_adds_a_term_to_the_decoupled_loss(clip: DemoClip) -> None
     _, plain = gaussians_at(result.model, result.deformation, clip, other)
     _, prior = gaussians_at(result.model, result.deformation, clip, other, mask_sparsity=0.5)
     assert plain is not None and prior is not None and "sparsity" not in plain
-    mask = rigidity_mask(result)
+    from dego.demo import deformable
+
+    # gated Gaussians (not movable) have m = 0 (DeformationOutput.gated)
+    mask = torch.where(deformable(result.model)[0], rigidity_mask(result), 0.0)
     assert float(prior["sparsity"].detach()) == pytest.approx(float(mask.mean()), rel=1e-5)
     expected = float(plain["total"].detach()) + 0.5 * float(mask.mean())
     assert float(prior["total"].detach()) == pytest.approx(expected)

@@ -61,14 +61,14 @@ STUDY_DESCRIPTION = (
 )
 
 BUDGETS = {
-    "quick": {"frames": 3, "iterations": 60, "gaussians": 1500},
+    "quick": {"frames": 3, "iterations": 30, "gaussians": 1000},
     "full": {"frames": 5, "iterations": 150, "gaussians": 2500},
 }
 """Default clip length, iterations per variant and Gaussians of ``--quick`` and the full run."""
 
 DURATIONS = {
-    "quick": "37-49 s wall on 2 idle CPU cores; 2 minutes or more on a loaded 2-core VM",
-    "full": "6-7 minutes wall on 2 idle CPU cores; 8-13 minutes beside other jobs",
+    "quick": "56 s wall on 2 idle CPU cores; more when other jobs share the cores",
+    "full": "3 minutes wall on 2 idle CPU cores; 5-6 minutes on one thread beside another job",
 }
 """How long each :data:`BUDGETS` entry takes, as ``--help`` and docs/demo.md say it (the
 tests check that they agree); measured on docs/performance.md's "The demo"."""

@@ -40,10 +40,10 @@ def camera_picture(result: FitResult, clip: DemoClip, path: Path, camera: int = 
     """Pseudo labels vs the fitted Gaussians' render, depth and semantics, reference frame."""
     index = clip.reference
     gaussians, _ = gaussians_at(result.model, result.deformation, clip, index)
-    rendered = render(gaussians, clip, index)
+    rendered = render(gaussians, clip, index, torch.tensor([camera]))  # that camera only
     probabilities = torch.cat([rendered.features[0], 1 - rendered.alpha[0][:, None]], 1)
-    semantics = probabilities.argmax(1)[camera].cpu()
-    depth = torch.where(rendered.alpha[0, camera] > 0.5, rendered.depth[0, camera], 0).cpu()
+    semantics = probabilities.argmax(1)[0].cpu()
+    depth = torch.where(rendered.alpha[0, 0] > 0.5, rendered.depth[0, 0], 0).cpu()
     pseudo_depth = clip.depth[index, camera].cpu()
     far = float(pseudo_depth.max().clamp_min(1))
 
