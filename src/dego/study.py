@@ -440,6 +440,7 @@ def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
                 yerr=errors,
                 capsize=3,
                 label=label(variant),
+                color=f"C{STUDY_VARIANTS.index(variant) % 10}",  # one colour per variant
             )
         axis.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])
 
