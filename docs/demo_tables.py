@@ -13,7 +13,8 @@ import json
 import sys
 from pathlib import Path
 
-from dego.study import METRICS, STUDY_VARIANTS, Interval, label, mean_interval
+from dego.demo import row_name
+from dego.study import METRICS, STUDY_VARIANTS, Interval, mean_interval
 
 GAINS = ("rigid", "decoupled", "free-offsets", "true-motion", "single-frame")
 PAIRED = ("articulated t!=0", "vehicles t!=0", "HCM t=0", "mIoU t=0")
@@ -34,7 +35,7 @@ def tables(payload: dict) -> str:
     lines += ["| variant | " + " | ".join(METRICS) + " |", "|---|" + "---:|" * len(METRICS)]
     for v in variants:
         cells = [f"{interval(list(values(v, m).values())).mean:.1f}" for m in METRICS]
-        lines.append(f"| {label(v)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {row_name(v)} | " + " | ".join(cells) + " |")
     lines += ["", "Gain over static, paired by seed, points, mean [95% t-interval]:", ""]
     lines += ["| variant - static | " + " | ".join(PAIRED) + " |", "|---|" + "---|" * len(PAIRED)]
     for v in (g for g in GAINS if g in variants):
@@ -45,9 +46,9 @@ def tables(payload: dict) -> str:
                 [a[s] - b[s] for s in seeds if a.get(s) is not None and b.get(s) is not None]
             )
             cells.append(f"{diff}{' *' if diff.excludes_zero() else ''}")
-        lines.append(f"| {label(v)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {row_name(v)} | " + " | ".join(cells) + " |")
     lines += ["", "Per seed, articulated t!=0 / vehicles t!=0 / HCM t=0:", ""]
-    lines += ["| seed | " + " | ".join(label(v) for v in variants) + " |"]
+    lines += ["| seed | " + " | ".join(row_name(v) for v in variants) + " |"]
     lines += ["|---:|" + "---|" * len(variants)]
     for s in seeds:
         cells = [

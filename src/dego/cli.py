@@ -25,12 +25,12 @@ from dego._version import __version__
 from dego.data.synthetic import SyntheticScene
 from dego.demo import (
     DEMO_FRAME_DT,
-    ROW_NAMES,
     VARIANTS,
     ClipScore,
     DemoClip,
     FitConfig,
     FitResult,
+    fit_iterations,
     fit_scene,
     format_table,
     initial_model,
@@ -38,6 +38,7 @@ from dego.demo import (
     mask_by_group,
     predict_clip,
     rigidity_mask,
+    row_name,
     score_clip,
 )
 from dego.study import QUICK_STUDY, STUDY_VARIANTS, StudyConfig, run_study, write_study
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     return run_demo(args.seed, budget, device, args.out, pictures=not args.no_pictures)
 
 
-LIFTED_ROW = ROW_NAMES["lifted-labels"]
+LIFTED_ROW = row_name("lifted-labels")
 """The table's ceiling row: each frame's own pseudo labels lifted to 3D."""
 
 PICTURED_VARIANTS = ("static", "rigid", "decoupled", "true-motion")
@@ -334,14 +335,12 @@ def run_demo(
     }
     results: list[FitResult] = []
     for variant in DEMO_VARIANTS:
-        name = ROW_NAMES.get(variant, variant)
-        steps = round(config.iterations / clip.num_frames) if variant == "single-frame" else None
-        bar = ProgressBar(variant, steps or config.iterations)
+        bar = ProgressBar(variant, fit_iterations(variant, config, clip))
         result = fit_scene(clip, variant, config, scene=scene, progress=bar)
         results.append(result)
-        labels[name] = predict_clip(result.model, result.deformation, clip)
+        labels[row_name(variant)] = predict_clip(result.model, result.deformation, clip)
     scores = {name: score_clip(grids, clip) for name, grids in labels.items()}
-    seconds = {ROW_NAMES.get(r.variant, r.variant): r.seconds for r in results}
+    seconds = {row_name(r.variant): r.seconds for r in results}
     table = format_table(scores, seconds)
     print(table)
     print(TABLE_LEGEND)
@@ -435,9 +434,9 @@ def _write_pictures(
     pictured = [r for r in results if r.variant in PICTURED_VARIANTS]
     paths = [
         bev_picture(
-            labels[ROW_NAMES.get(r.variant, r.variant)][last],
+            labels[row_name(r.variant)][last],
             clip,
-            ROW_NAMES.get(r.variant, r.variant),
+            row_name(r.variant),
             out / f"bev_{r.variant}.png",
             last,
         )

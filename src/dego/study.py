@@ -24,7 +24,7 @@ from dego._checks import check_int
 from dego.data.synthetic import SyntheticScene
 from dego.demo.clip import DEMO_FRAME_DT, DemoClip
 from dego.demo.evaluate import lifted_clip_labels, predict_clip, score_clip
-from dego.demo.fit import ROW_NAMES, FitConfig, FitResult, fit_scene, rigidity_mask
+from dego.demo.fit import FitConfig, FitResult, fit_scene, rigidity_mask, row_name
 from dego.demo.offsets import agent_under
 
 STUDY_VARIANTS = (
@@ -296,11 +296,6 @@ PAIRED_METRICS = ("articulated t!=0", "vehicles t!=0", "HCM t=0", "mIoU t=0", "m
 """The metrics of the paired-difference table."""
 
 
-def label(variant: str) -> str:
-    """How the report names ``variant`` (``true-motion``: ``true motion (oracle)``)."""
-    return ROW_NAMES.get(variant, variant)
-
-
 def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, dict]:
     """The Markdown report and its JSON payload."""
     summary = summarise(runs)
@@ -348,7 +343,9 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
                 payload["paired"][key] = dataclasses.asdict(interval)
             n = by_metric[PAIRED_METRICS[0]][budget].n
             lines.append(
-                f"| {label(first)} - {label(second)} | {budget} | {n} | " + " | ".join(cells) + " |"
+                f"| {row_name(first)} - {row_name(second)} | {budget} | {n} | "
+                + " | ".join(cells)
+                + " |"
             )
     lines += ["", "## Reading", "", *_reading(runs, summary)]
     return "\n".join(lines) + "\n", payload
@@ -359,7 +356,7 @@ def _interval_table(variants: dict[str, dict[str, Interval]], metrics: Sequence[
     rows = [head, "|---|" + "---|" * len(metrics)]
     for variant, values in variants.items():
         cells = [str(values[m]) for m in metrics]
-        rows.append(f"| {label(variant)} | " + " | ".join(cells) + " |")
+        rows.append(f"| {row_name(variant)} | " + " | ".join(cells) + " |")
     return rows
 
 
@@ -439,7 +436,7 @@ def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
                 width,
                 yerr=errors,
                 capsize=3,
-                label=label(variant),
+                label=row_name(variant),
                 color=f"C{STUDY_VARIANTS.index(variant) % 10}",  # one colour per variant
             )
         axis.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])

@@ -51,6 +51,19 @@ ROW_NAMES: dict[str, str] = {
 }
 """How the tables name a variant where it differs from its id."""
 
+
+def row_name(variant: str) -> str:
+    """How the tables name ``variant`` (:data:`ROW_NAMES`, else the id itself)."""
+    return ROW_NAMES.get(variant, variant)
+
+
+def most_likely_in(semantic_logits: Tensor, classes: tuple[int, ...]) -> Tensor:
+    """``(N,)`` bool: the Gaussians whose most likely class (argmax of the detached
+    ``(N, 17)`` logits) is one of ``classes``."""
+    labels = semantic_logits.detach().argmax(-1)
+    return torch.isin(labels, torch.tensor(classes, device=labels.device))
+
+
 DeformClasses = Literal["all", "movable"]
 OffsetGradients = Literal["raw", "balanced"]
 
@@ -214,10 +227,9 @@ def rigidity_mask(result: FitResult) -> Float[Tensor, " N"]:
 def mask_by_group(mask: Float[Tensor, " N"], model: GaussianSceneModel) -> dict[str, float]:
     """Mean mask over all Gaussians and over those whose most likely class is in each of
     the InsM / ScnM / HCM groups (NaN for an empty group)."""
-    labels = model.semantic_logits.argmax(-1)
     summary = {"all": float(mask.mean())}
     for name, ids in CLASS_GROUPS.items():
-        members = torch.isin(labels, torch.tensor(ids, device=labels.device))
+        members = most_likely_in(model.semantic_logits, ids)
         summary[name] = float(mask[members].mean()) if members.any() else float("nan")
     return summary
 
@@ -266,11 +278,9 @@ def build_deformation(
 def deformable(model: GaussianSceneModel | _FrozenCanonical) -> Tensor | None:
     """``(1, N)`` bool: the Gaussians ``model.deform_classes`` lets the deformation move
     (their most likely class is one of them), or ``None`` when every Gaussian may move."""
-    classes = model.deform_classes
-    if classes is None:
+    if model.deform_classes is None:
         return None
-    labels = model.semantic_logits.detach().argmax(-1)
-    return torch.isin(labels, torch.tensor(classes, device=labels.device))[None]
+    return most_likely_in(model.semantic_logits, model.deform_classes)[None]
 
 
 def gaussians_at(
@@ -349,6 +359,14 @@ def weak_losses(
     }
 
 
+def fit_iterations(variant: Variant, config: FitConfig, clip: DemoClip) -> int:
+    """Optimiser steps :func:`fit_scene` takes: ``config.iterations``, or for
+    ``single-frame`` the reference frame's share of them, ``round(iterations / T)``."""
+    if variant == "single-frame":
+        return round(config.iterations / clip.num_frames)
+    return config.iterations
+
+
 def fit_scene(
     clip: DemoClip,
     variant: Variant,
@@ -379,14 +397,14 @@ def fit_scene(
         for name in ("means", "quats", "log_scales", "opacity_logits", "semantic_logits")
     ]
     groups.append({"params": [model.latent], "lr": config.lr["latent"]})
-    trainable = [] if deformation is None else [p for p in deformation.parameters()]
+    trainable = [] if deformation is None else list(deformation.parameters())
     if trainable:
         rate = config.lr["offsets" if variant == "free-offsets" else "deformation"]
         groups.append({"params": trainable, "lr": rate})
     optimizer = torch.optim.Adam(groups)
 
     single = variant == "single-frame"
-    iterations = round(config.iterations / clip.num_frames) if single else config.iterations
+    iterations = fit_iterations(variant, config, clip)
     history: dict[str, list[float]] = {term: [] for term in LOSS_TERMS}
     order: list[int] = []
     start = time.perf_counter()
@@ -465,8 +483,7 @@ class _FrozenCanonical:
         gaussians = self._model.gaussians()
         if not self._movable_only:
             return gaussians.detach()
-        classes = self._model.semantic_logits.detach().argmax(-1)
-        movable = torch.isin(classes, torch.tensor(MOVABLE_CLASSES, device=classes.device))
+        movable = most_likely_in(self._model.semantic_logits, MOVABLE_CLASSES)
 
         def freeze(name: str, field: Tensor) -> Tensor:
             keep = movable[None] if name == "opacities" else movable[None, :, None]
