@@ -309,16 +309,16 @@ def test_custom_groups_and_missing_group() -> None:
 
 
 def test_reset_state_dict_round_trip_and_config_checks() -> None:
-    metrics = OccupancyMetrics("weak")
+    metrics = OccupancyMetrics("weak").persistent()  # counts in state_dict: opt-in
     metrics.update(*random_sample(2))
     state = metrics.state_dict()
     assert state["confusion"].dtype == torch.int64 and state["confusion"].shape == (18, 18)
-    restored = OccupancyMetrics("weak")
+    restored = OccupancyMetrics("weak").persistent()
     restored.load_state_dict(state)
     assert torch.equal(restored.confusion, metrics.confusion)
     assert restored.compute().miou == metrics.compute().miou
     with pytest.raises(ValueError, match="saved configuration"):
-        OccupancyMetrics("occ3d").load_state_dict(state)
+        OccupancyMetrics("occ3d").persistent().load_state_dict(state)
     with pytest.raises(ValueError, match="other: configuration"):
         metrics.merge(OccupancyMetrics("occ3d"))
     metrics.reset()
@@ -445,13 +445,83 @@ def test_other_label_sets_use_occ3d_protocol() -> None:
 
 
 def test_a_refused_state_dict_leaves_the_counts_untouched() -> None:
-    weak, occ3d = OccupancyMetrics("weak"), OccupancyMetrics("occ3d")
+    weak, occ3d = OccupancyMetrics("weak").persistent(), OccupancyMetrics("occ3d").persistent()
     weak.update(*random_sample(0))
     occ3d.update(*random_sample(1))
     before = occ3d.confusion.clone(), occ3d.geometric.clone()
     with pytest.raises(ValueError, match="configuration"):
         occ3d.load_state_dict(weak.state_dict())
     assert torch.equal(occ3d.confusion, before[0]) and torch.equal(occ3d.geometric, before[1])
+
+
+class _Model(torch.nn.Module):
+    """A model that holds a metric as a submodule (as a LightningModule would)."""
+
+    def __init__(self, metric: OccupancyMetrics | None = None) -> None:
+        super().__init__()
+        self.head = torch.nn.Linear(3, 2)
+        if metric is not None:
+            self.metric = metric
+
+
+def test_counts_stay_out_of_a_models_state_dict_by_default(tmp_path) -> None:
+    model = _Model(OccupancyMetrics("weak"))
+    model.metric.update(*random_sample(3))
+    assert set(model.state_dict()) == {"head.weight", "head.bias"}
+    torch.save(model.state_dict(), tmp_path / "model.pt")
+    state = torch.load(tmp_path / "model.pt", weights_only=True)
+    without = _Model()
+    without.load_state_dict(state, strict=True)  # loads into a model without the metric
+    assert torch.equal(without.head.weight, model.head.weight)
+    changed = _Model(OccupancyMetrics("occ3d"))  # a changed protocol no longer breaks loading
+    changed.load_state_dict(state, strict=True)
+    assert int(changed.metric.confusion.sum()) == 0
+
+
+def test_persistent_puts_the_counts_and_configuration_back() -> None:
+    metric = OccupancyMetrics("weak")
+    metric.update(*random_sample(3))
+    assert metric.persistent() is metric
+    model = _Model(metric)
+    state = model.state_dict()
+    assert set(state) == {
+        "head.weight",
+        "head.bias",
+        "metric.confusion",
+        "metric.geometric",
+        "metric._extra_state",
+    }
+    assert state["metric._extra_state"]["protocol"] == "weak"
+    restored = _Model(OccupancyMetrics("weak").persistent())
+    restored.load_state_dict(state, strict=True)
+    assert torch.equal(restored.metric.confusion, metric.confusion)
+    with pytest.raises(RuntimeError, match="Missing key"):  # strict: a persistent metric's keys
+        restored.load_state_dict(_Model().state_dict(), strict=True)
+    with pytest.raises(ValueError, match="saved configuration"):
+        _Model(OccupancyMetrics("occ3d").persistent()).load_state_dict(state)
+    metric.persistent(False)
+    assert set(model.state_dict()) == {"head.weight", "head.bias"}
+
+
+def test_a_non_persistent_metric_still_reads_saved_counts() -> None:
+    """A checkpoint that holds counts (a persistent save, or one made before counts became
+    opt-in) loads with strict=True: matching counts are restored, others ignored with a
+    warning, never reported as unexpected keys."""
+    saved = _Model(OccupancyMetrics("weak").persistent())
+    saved.metric.update(*random_sample(4))
+    state = saved.state_dict()
+    same = _Model(OccupancyMetrics("weak"))
+    same.load_state_dict(state, strict=True)
+    assert torch.equal(same.metric.confusion, saved.metric.confusion)
+    assert "metric.confusion" not in same.state_dict()
+    without = _Model()
+    with pytest.raises(RuntimeError, match="Unexpected key"):
+        without.load_state_dict(state, strict=True)  # torch's rule for a model without it
+    without.load_state_dict(state, strict=False)
+    other = _Model(OccupancyMetrics("occ3d"))
+    with pytest.warns(UserWarning, match="saved counts of 'metric' are ignored"):
+        other.load_state_dict(state, strict=True)
+    assert int(other.metric.confusion.sum()) == 0
 
 
 @given(st.integers(0, 10_000), st.floats(0.0, 0.9))

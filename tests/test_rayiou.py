@@ -270,12 +270,13 @@ def test_merge_equals_one_instance_fed_both() -> None:
 
 
 def test_state_dict_round_trip_reset_and_config_checks() -> None:
-    metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS)
+    metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS).persistent()  # counts in state_dict
     metric.update(*random_scene(3))
     state = metric.state_dict()
-    assert set(state) >= {"gt_count", "pred_count", "true_positives"}
+    assert set(state) == {"gt_count", "pred_count", "true_positives", "_extra_state"}
     assert state["true_positives"].dtype == torch.int64 and state["true_positives"].shape == (3, 18)
-    restored = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS)
+    assert RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS).state_dict() == {}  # the default
+    restored = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS).persistent()
     restored.load_state_dict(state)
     for name in ("gt_count", "pred_count", "true_positives"):
         assert torch.equal(getattr(restored, name), getattr(metric, name))
@@ -287,7 +288,7 @@ def test_state_dict_round_trip_reset_and_config_checks() -> None:
         {"class_ids": [1, 2, 3]},
         {"free_label": 0},
     ):
-        other = RayIoU(rays=SMALL_RAYS, **{"grid": SMALL_GRID, **kwargs})
+        other = RayIoU(rays=SMALL_RAYS, **{"grid": SMALL_GRID, **kwargs}).persistent()
         with pytest.raises(ValueError, match="configuration"):
             other.load_state_dict(state)
         with pytest.raises(ValueError, match="other: configuration"):
@@ -305,9 +306,9 @@ def test_state_dict_round_trip_reset_and_config_checks() -> None:
 
 
 def test_a_refused_state_dict_or_merge_leaves_the_counts_untouched() -> None:
-    metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS)
+    metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS).persistent()
     metric.update(*random_scene(3))
-    other = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS, thresholds=(1.0, 2.0, 3.0))
+    other = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS, thresholds=(1.0, 2.0, 3.0)).persistent()
     other.update(*random_scene(5))
     before = [t.clone() for t in (other.gt_count, other.pred_count, other.true_positives)]
     with pytest.raises(ValueError, match="configuration"):
@@ -317,9 +318,9 @@ def test_a_refused_state_dict_or_merge_leaves_the_counts_untouched() -> None:
 
 
 def test_the_ray_pattern_is_part_of_the_configuration() -> None:
-    metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS)
+    metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS).persistent()
     metric.update(*random_scene(3))
-    turned = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS.flip(0))
+    turned = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS.flip(0)).persistent()
     with pytest.raises(ValueError, match="other: configuration"):
         metric.merge(turned)
     with pytest.raises(ValueError, match="configuration"):

@@ -8,23 +8,34 @@
 - **dtypes.** Floating inputs of one call share one dtype (``TypeError`` naming the
   argument otherwise: nothing is promoted silently). float16 and bfloat16 inputs are
   computed in float32 and the results returned in the input dtype (:func:`compute_dtype`).
+- **Autocast.** Under ``torch.autocast`` the geometric ops are on autocast's float32
+  list (:func:`float32_under_autocast`): float16 / bfloat16 inputs are cast to float32,
+  the op runs with autocast off and returns float32.
 - **Non-finite values** in geometric inputs raise ``ValueError`` naming the argument and
-  the count (:func:`check_finite`).
+  the count (:func:`check_finite`). Value checks go through :func:`run_checks`: one host
+  sync per call in eager mode; under ``torch.compile`` in-graph asserts (no sync, no graph
+  break) that raise ``RuntimeError`` naming the argument.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TypeVar
 
 import torch
 from torch import Tensor
+from torch.utils._pytree import tree_leaves, tree_map
+
+from dego._typing import _is_compiling
 
 _DEFAULT_LIMIT = 64 * 2**30
 _limit: int | None = _DEFAULT_LIMIT
 
 HALF_DTYPES = (torch.float16, torch.bfloat16)
+F = TypeVar("F", bound=Callable[..., Any])
 
 
 def get_memory_limit() -> int | None:
@@ -81,6 +92,52 @@ def compute_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float32 if dtype in HALF_DTYPES else dtype
 
 
+def _autocast_enabled(device_type: str) -> bool:
+    try:
+        return torch.is_autocast_enabled(device_type)
+    except TypeError:  # torch < 2.4: one query per device type
+        if device_type == "cpu":
+            return torch.is_autocast_cpu_enabled()
+        return device_type == "cuda" and torch.is_autocast_enabled()
+
+
+def float32_under_autocast(*, keep_autocast: bool = False) -> Callable[[F], F]:
+    """Decorator: under ``torch.autocast`` for the inputs' device, cast every float16 /
+    bfloat16 tensor argument (GaussianSets included) to float32, like the ops on autocast's
+    float32 list, and run ``fn`` with autocast disabled, so that its geometry (projection,
+    compositing, voxel kernels) is computed and returned in float32.
+
+    ``keep_autocast=True`` leaves autocast on inside ``fn`` (its networks then run in the
+    autocast dtype) after the same cast of the inputs: for modules that mix learned layers
+    with geometry and cast their layers' outputs back themselves.
+    """
+
+    def decorate(fn: F) -> F:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            device_type = next(
+                (t.device.type for t in tree_leaves((args, kwargs)) if isinstance(t, Tensor)),
+                None,
+            )
+            if device_type is None or not _autocast_enabled(device_type):
+                return fn(*args, **kwargs)
+            args, kwargs = tree_map(_to_float32, (args, kwargs))
+            if keep_autocast:
+                return fn(*args, **kwargs)
+            with torch.autocast(device_type, enabled=False):
+                return fn(*args, **kwargs)
+
+        return wrapper  # type: ignore[return-value]
+
+    return decorate
+
+
+def _to_float32(value: Any) -> Any:
+    if isinstance(value, Tensor) and value.dtype in HALF_DTYPES:
+        return value.float()
+    return value
+
+
 def check_dtype(name: str, tensor: Tensor, expected: torch.dtype, owner: str) -> None:
     """``TypeError`` unless ``tensor`` has the ``expected`` dtype of ``owner``."""
     if tensor.dtype != expected:
@@ -90,35 +147,57 @@ def check_dtype(name: str, tensor: Tensor, expected: torch.dtype, owner: str) ->
         )
 
 
+Check = tuple[Tensor, str, Callable[[], Exception]]
+"""One value check ``(ok, summary, error)``: ``ok`` a bool tensor, True when the values
+are valid; ``summary`` the message raised under ``torch.compile``; ``error()`` builds the
+eager exception (it runs only on failure, so it may read the tensors for details)."""
+
+
+def finite_check(name: str, tensor: Tensor) -> Check:
+    """The :data:`Check` that ``tensor`` holds no NaN or infinite value."""
+
+    def error() -> Exception:
+        bad = int((~torch.isfinite(tensor)).sum())
+        return ValueError(f"{name}: {bad} of {tensor.numel()} values are not finite")
+
+    return torch.isfinite(tensor).all(), f"{name}: contains values that are not finite", error
+
+
+def run_checks(checks: Sequence[Check]) -> None:
+    """Run value checks, raising the first failure's error.
+
+    Eager: one host sync for all of them. While ``torch.compile`` traces: each becomes
+    ``torch._assert_async(ok, summary)`` in the graph (no host sync, no graph break); a
+    failure then raises ``RuntimeError`` with the summary, which names the argument.
+    """
+    if not checks:
+        return
+    if _is_compiling():
+        for ok, summary, _ in checks:
+            torch._assert_async(ok, f"{summary} (dego's value check, under torch.compile)")
+        return
+    results = torch.stack([ok.reshape(()).to(torch.bool) for ok, _, _ in checks]).tolist()
+    for (_, _, error), passed in zip(checks, results, strict=True):
+        if not passed:
+            raise error()
+
+
 def check_finite(name: str, tensor: Tensor) -> None:
     """``ValueError`` naming ``name`` when ``tensor`` holds NaN or infinite values."""
-    bad = ~torch.isfinite(tensor)
-    if bool(bad.any()):
-        raise ValueError(f"{name}: {int(bad.sum())} of {tensor.numel()} values are not finite")
-
-
-def check_finite_with(named: Sequence[tuple[str, Tensor]], *flags: Tensor) -> list[int]:
-    """:func:`check_finite` on every ``(name, tensor)`` plus the values of other scalar
-    checks ``flags`` (bool or integer tensors), with one host sync for all of them.
-
-    Raises for the first non-finite tensor; returns the flags' values as ints.
-    """
-    values = [torch.isfinite(t).all() for _, t in named] + list(flags)
-    results = torch.stack([v.to(torch.int64) for v in values]).tolist() if values else []
-    for (name, tensor), ok in zip(named, results, strict=False):
-        if not ok:
-            check_finite(name, tensor)
-    return results[len(named) :]
+    run_checks([finite_check(name, tensor)])
 
 
 __all__ = [
     "HALF_DTYPES",
+    "Check",
     "check_dtype",
     "check_finite",
-    "check_finite_with",
     "check_memory",
     "compute_dtype",
+    "finite_check",
+    "float32_under_autocast",
     "get_memory_limit",
     "memory_limit",
+    "run_checks",
     "set_memory_limit",
 ]

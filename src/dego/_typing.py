@@ -1,20 +1,33 @@
 """Run-time shape/dtype checking shared by every public entry point.
 
-``typechecked`` is jaxtyping's ``jaxtyped`` with beartype as the checker: a wrong
-shape or dtype raises :class:`jaxtyping.TypeCheckError` (a ``TypeError``) whose
-message names the offending parameter and the axis sizes seen so far. While
-``torch.compile`` traces a function the check is skipped (dynamo cannot trace
-beartype), so compiled graphs stay whole; eager calls are always checked.
+``typechecked`` checks a function's jaxtyping annotations on every call, eager or compiled:
+
+- **Eager**: jaxtyping's ``jaxtyped`` with beartype as the checker. A wrong shape or dtype
+  raises :class:`jaxtyping.TypeCheckError` (a ``TypeError``) whose message names the
+  offending parameter and the axis sizes seen so far. The check runs with TorchDynamo
+  disabled (``torch._dynamo.disable``): when an enclosing ``torch.compile`` falls back to
+  running a frame eagerly, dynamo must not trace jaxtyping's and beartype's internals (it
+  would cache their side effects and report false mismatches on later calls).
+- **While ``torch.compile`` traces** (beartype cannot be traced): a traceable check of the
+  same annotations, in plain Python over shapes and dtypes, raising the same
+  ``TypeCheckError`` naming the parameter. Shapes are known while tracing, so the check
+  adds no graph break and no host sync; dynamo's guards make it hold for every call that
+  reuses the graph.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import inspect
+import types
+import typing
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+import torch
 from beartype import beartype
-from jaxtyping import jaxtyped
+from jaxtyping import TypeCheckError, jaxtyped
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -23,16 +36,204 @@ try:
 except ImportError:  # torch < 2.3
     from torch._dynamo import is_compiling as _is_compiling
 
+# One array alternative of a hint: (dtype names or None for any, dims, hint text); dims
+# are ("fixed", size) / ("named", name) / ("variadic", name).
+_Array = tuple[tuple[str, ...] | None, tuple[tuple[str, Any], ...], str]
+# A parameter's spec: its array alternatives and whether anything else is also accepted.
+_Spec = tuple[str, tuple[_Array, ...], bool]
+
+
+def _array_alternative(hint: Any) -> _Array | None:
+    dims = getattr(hint, "dims", None)
+    if dims is None or getattr(hint, "array_type", None) is not torch.Tensor:
+        return None
+    dtypes = hint.dtypes if isinstance(hint.dtypes, tuple | list) else None
+    parsed = []
+    for dim in dims:
+        kind = type(dim).__name__
+        if kind == "_FixedDim":
+            parsed.append(("fixed", dim.size))
+        elif kind == "_NamedDim":
+            parsed.append(("named", dim.name))
+        elif kind in ("_NamedVariadicDim", "_AnonymousVariadicDim"):
+            parsed.append(("variadic", getattr(dim, "name", None)))
+        else:  # symbolic or anonymous dims: accept any size
+            parsed.append(("named", None))
+    return (tuple(dtypes) if dtypes is not None else None, tuple(parsed), hint.dim_str)
+
+
+def _parameter_spec(name: str, hint: Any) -> _Spec | None:
+    alternatives = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union,) else ()
+    if not alternatives and type(hint).__name__ == "UnionType":
+        alternatives = typing.get_args(hint)
+    alternatives = alternatives or (hint,)
+    arrays = [a for a in (_array_alternative(h) for h in alternatives) if a is not None]
+    if not arrays:
+        return None
+    return (name, tuple(arrays), len(arrays) < len(alternatives))
+
+
+def _specs(fn: Callable[..., Any]) -> tuple[tuple[str, ...], tuple[_Spec, ...]]:
+    """The names of ``fn``'s positional parameters and the specs of its array parameters."""
+    hints = typing.get_type_hints(fn, include_extras=True)
+    parameters = inspect.signature(fn).parameters
+    positional = tuple(
+        name
+        for name, p in parameters.items()
+        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+    )
+    specs = (_parameter_spec(name, hints[name]) for name in parameters if name in hints)
+    return positional, tuple(s for s in specs if s is not None)
+
+
+def _matches(value: torch.Tensor, array: _Array, sizes: dict[str, Any]) -> bool:
+    dtypes, dims, _ = array
+    if dtypes is not None and str(value.dtype).removeprefix("torch.") not in dtypes:
+        return False
+    shape = value.shape
+    variadic = [i for i, (kind, _) in enumerate(dims) if kind == "variadic"]
+    if variadic:
+        at = variadic[0]
+        fixed = len(dims) - 1
+        if len(shape) < fixed:
+            return False
+        head, tail = dims[:at], dims[at + 1 :]
+        middle = tuple(shape[at : len(shape) - len(tail)])
+        pairs = [
+            *zip(head, shape[:at], strict=True),
+            *zip(tail, shape[len(shape) - len(tail) :], strict=True),
+        ]
+        name = dims[at][1]
+        if name is not None and name in sizes and sizes[name] != middle:
+            return False
+        bound = {name: middle} if name is not None else {}
+    else:
+        if len(shape) != len(dims):
+            return False
+        pairs, bound = list(zip(dims, shape, strict=True)), {}
+    for (kind, label), size in pairs:
+        if kind == "fixed" and size != label:
+            return False
+        if kind == "named" and label is not None:
+            expected = bound.get(label, sizes.get(label))
+            if expected is not None and expected != size:
+                return False
+            bound[label] = size
+    sizes.update(bound)
+    return True
+
+
+def _traced_check(qualname: str, specs: tuple[_Spec, ...], arguments: dict[str, Any]) -> None:
+    """The compile-time check: plain Python over shapes and dtypes, traceable by dynamo."""
+    sizes: dict[str, Any] = {}
+    for name, arrays, others in specs:
+        if name not in arguments:
+            continue
+        value = arguments[name]
+        if not isinstance(value, torch.Tensor):
+            if others:
+                continue
+            raise TypeCheckError(
+                f"Type-check error whilst checking the parameters of {qualname}.\n"
+                f"The problem arose whilst typechecking parameter '{name}'.\n"
+                f"Actual value: {type(value).__name__}\n"
+                f"Expected type: a tensor ({' or '.join(repr(a[2]) for a in arrays)})."
+            )
+        trial = dict(sizes)
+        for array in arrays:
+            if _matches(value, array, trial):
+                sizes = trial
+                break
+            trial = dict(sizes)
+        else:
+            shape = ",".join(str(s) for s in value.shape)
+            raise TypeCheckError(
+                f"Type-check error whilst checking the parameters of {qualname}.\n"
+                f"The problem arose whilst typechecking parameter '{name}'.\n"
+                f"Actual value: {str(value.dtype).removeprefix('torch.')}[{shape}]\n"
+                f"Expected type: {' or '.join(repr(a[2]) for a in arrays)}"
+                f"{' (or a non-tensor value)' if others else ''}.\n"
+                f"Axis sizes seen so far: {sizes}"
+            )
+
+
+_RESULT = "_dego_result"
+
+
+def _stub(fn: Callable[..., Any], with_return: bool) -> Callable[..., Any]:
+    """A function with ``fn``'s parameters, annotations and globals and an empty body, for
+    jaxtyping + beartype to check the arguments (and, ``with_return``, a result passed as
+    the extra keyword ``_dego_result``) without running ``fn`` inside the checker."""
+    positional, keyword, variadic = [], [], []
+    for p in inspect.signature(fn).parameters.values():
+        default = "=None" if p.default is not p.empty else ""
+        if p.kind is p.VAR_POSITIONAL:
+            positional.append(f"*{p.name}")
+        elif p.kind is p.VAR_KEYWORD:
+            variadic.append(f"**{p.name}")
+        elif p.kind is p.KEYWORD_ONLY:
+            keyword.append(p.name + default)
+        else:
+            positional.append(p.name + default)
+    if with_return:
+        keyword.append(f"{_RESULT}=None")
+    star = [] if not keyword or any(t.startswith("*") for t in positional) else ["*"]
+    namespace: dict[str, Any] = {}
+    body = f"return {_RESULT}" if with_return else "return None"
+    exec(f"def stub({', '.join(positional + star + keyword + variadic)}):\n    {body}", namespace)
+    stub = types.FunctionType(namespace["stub"].__code__, fn.__globals__, fn.__name__)
+    stub.__defaults__ = fn.__defaults__
+    stub.__kwdefaults__ = {**(fn.__kwdefaults__ or {}), **({_RESULT: None} if with_return else {})}
+    annotations = dict(fn.__annotations__)
+    if with_return:
+        annotations[_RESULT] = annotations.pop("return")
+    annotations.pop("return", None)
+    stub.__annotations__ = annotations
+    stub.__module__, stub.__qualname__ = fn.__module__, fn.__qualname__
+    return stub
+
+
+def _has_array_return(fn: Callable[..., Any]) -> bool:
+    annotation = fn.__annotations__.get("return")
+    return annotation is not None and "Tensor" in str(annotation)
+
 
 def typechecked(fn: F) -> F:
-    """Check ``fn``'s jaxtyping annotations with beartype on every eager call."""
-    checked = jaxtyped(typechecker=beartype)(fn)
+    """Check ``fn``'s jaxtyping annotations on every call, eager or compiled."""
+    check_arguments = torch._dynamo.disable(
+        jaxtyped(typechecker=beartype)(_stub(fn, with_return=False)), recursive=True
+    )
+    check_result = (
+        torch._dynamo.disable(
+            jaxtyped(typechecker=beartype)(_stub(fn, with_return=True)), recursive=True
+        )
+        if _has_array_return(fn)
+        else None
+    )
+    qualname = f"{fn.__module__}.{fn.__qualname__}"
+    prepared: list[tuple[tuple[str, ...], tuple[_Spec, ...]]] = []
+
+    @torch._dynamo.disable(recursive=True)
+    def prepare() -> None:
+        prepared.append(_specs(fn))
+
+    # An annotation naming something defined later in its module resolves on first use.
+    with contextlib.suppress(NameError):
+        prepare()
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         if _is_compiling():
+            if not prepared:
+                prepare()
+            positional, specs = prepared[0]
+            _traced_check(qualname, specs, {**dict(zip(positional, args, strict=False)), **kwargs})
             return fn(*args, **kwargs)
-        return checked(*args, **kwargs)
+        check_arguments(*args, **kwargs)
+        result = fn(*args, **kwargs)
+        if check_result is not None:
+            check_result(*args, **kwargs, **{_RESULT: result})
+        return result
 
     return wrapper  # type: ignore[return-value]
 

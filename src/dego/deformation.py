@@ -17,8 +17,9 @@ import torch
 from jaxtyping import Bool, Float
 from torch import Tensor, nn
 
+from dego import _serialization
 from dego._checks import check_int, check_positive
-from dego._policy import check_finite_with
+from dego._policy import finite_check, float32_under_autocast, run_checks
 from dego._typing import typechecked
 from dego.deformation_checkpoint import (
     OFFICIAL_CHECKPOINT_PREFIX,
@@ -98,7 +99,7 @@ class DeformationLossWeights:
 
 
 @dataclasses.dataclass(frozen=True)
-class DeformationDeltas:
+class DeformationDeltas(_serialization.DictForm):
     """Applied deltas per parameter, each ``(B, T, N, k)`` (opacities ``(B, T, N)``).
 
     ``paper``: the update in each parameter's own space, after the mask: position offset
@@ -114,7 +115,7 @@ class DeformationDeltas:
 
 
 @dataclasses.dataclass(frozen=True)
-class DeformationOutput:
+class DeformationOutput(_serialization.DictForm):
     """Result of :class:`DecoupledDeformation`.
 
     Attributes:
@@ -330,9 +331,8 @@ def _check_like_gaussians(
             f"gaussians: {gaussians.dtype} on {gaussians.device}, but the module's "
             f"parameters are {weight.dtype} on {weight.device}; move one with .to()"
         )
-    check_finite_with(
-        [*((f"gaussians.{name}", t) for name, t in gaussians._items()), ("features", features)]
-    )
+    named = [*((f"gaussians.{name}", t) for name, t in gaussians._items()), ("features", features)]
+    run_checks([finite_check(name, t) for name, t in named])
 
 
 def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
@@ -526,8 +526,8 @@ class DecoupledDeformation(nn.Module):
                 nn.init.zeros_(head[-1].bias)
 
     def _normalized_times(self, times: Tensor, batch: int) -> Tensor:
-        if not bool(torch.isfinite(times).all()):
-            raise ValueError("times: expected finite values, got NaN or inf")
+        message = "times: expected finite values, got NaN or inf"
+        run_checks([(torch.isfinite(times).all(), message, lambda: ValueError(message))])
         if times.shape[-1] == 0:
             raise ValueError("times: expected at least one time step, got T = 0")
         if times.ndim == 1:
@@ -538,6 +538,7 @@ class DecoupledDeformation(nn.Module):
             )
         return times / self.time_scale
 
+    @float32_under_autocast(keep_autocast=True)
     @typechecked
     def forward(
         self,
@@ -576,7 +577,7 @@ class DecoupledDeformation(nn.Module):
         static_part = self.input_static(static)[:, None]  # (B, 1, N, D_h)
         time_part = self.input_time(embedding)[:, :, None]  # (B, T, 1, D_h)
         t = times.shape[1]
-        heads = dict(self.heads)
+        heads = {name: head for name, head in self.heads.items()}
         if self.preset == "official" and self.fixed_mask is None:
             heads["mask"] = self.mask_head
         # All T at once, over bounded chunks of Gaussians: the arithmetic of one pass,
@@ -590,15 +591,16 @@ class DecoupledDeformation(nn.Module):
                 hidden = torch.relu(self.trunk(hidden))
             for name, head in heads.items():
                 outputs[name].append(head(hidden))  # (B, T, chunk, k)
+        # Under autocast the layers run in its dtype; the deltas return in the Gaussians'.
         raw = {
-            name: torch.cat(parts, 2)
+            name: torch.cat(parts, 2).to(static.dtype)
             if parts
             else static.new_zeros(b, t, n, heads[name][-1].out_features)
             for name, parts in outputs.items()
         }
         if self.preset == "paper":
             if self.fixed_mask is None:
-                mask = torch.sigmoid(self.mask_head(static)).squeeze(-1)  # (B, N)
+                mask = torch.sigmoid(self.mask_head(static).to(static.dtype)).squeeze(-1)  # (B, N)
             else:
                 mask = static.new_full((b, n), self.fixed_mask)
             return self._apply_paper(gaussians, raw, mask)

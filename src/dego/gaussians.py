@@ -18,6 +18,8 @@ import torch.utils._pytree as pytree
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from dego import _serialization
+from dego._policy import float32_under_autocast
 from dego._typing import typechecked
 
 try:
@@ -237,7 +239,7 @@ def _describe_expected(name: str, batch: tuple[int, ...], n: int, channels: int 
 
 
 @dataclasses.dataclass(frozen=True, eq=False, repr=False)
-class GaussianSet:
+class GaussianSet(_serialization.DictForm):
     """A (batched) set of N 3D Gaussians; all tensors share batch shape, N, dtype and device.
 
     Fields:
@@ -499,6 +501,7 @@ class GaussianSet:
         """Apply ``Tensor.to(*args, **kwargs)`` to every field (device and/or float dtype)."""
         return self._map(lambda _, t: t.to(*args, **kwargs))
 
+    @float32_under_autocast()
     @typechecked
     def transformed(self, matrix: Float[Tensor, "*mbatch 4 4"]) -> GaussianSet:
         """The set under the rigid motion ``x -> R x + t`` of ``matrix`` (``(4, 4)`` or

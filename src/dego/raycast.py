@@ -58,7 +58,7 @@ import torch
 from jaxtyping import Bool, Float, Integer
 from torch import Tensor
 
-from dego._policy import check_dtype, check_finite, check_memory, compute_dtype
+from dego._policy import check_dtype, check_memory, compute_dtype, finite_check, run_checks
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
 from dego.grid import VoxelGrid
@@ -136,15 +136,22 @@ def _ray_mode(origins: Tensor, directions: Tensor) -> tuple[torch.dtype, bool]:
 
 
 def _check_rays(origins: Tensor, directions: Tensor) -> None:
-    check_finite("origins", origins)
-    check_finite("directions", directions)
     zero = (directions == 0).all(-1)
-    if bool(zero.any()):
+
+    def zero_error() -> Exception:
         first = int(zero.nonzero()[0, 0])
-        raise ValueError(
+        return ValueError(
             f"directions: {int(zero.sum())} of {directions.shape[0]} directions are zero "
             f"vectors (first: row {first}); expected non-zero directions"
         )
+
+    run_checks(
+        [
+            finite_check("origins", origins),
+            finite_check("directions", directions),
+            (~zero.any(), "directions: zero vectors; expected non-zero directions", zero_error),
+        ]
+    )
 
 
 def _voxel_rays(
@@ -292,6 +299,7 @@ def _cast_sizes(num_rays: int, grid: VoxelGrid) -> str:
     return f"{num_rays} rays through a {grid.shape[0]} x {grid.shape[1]} x {grid.shape[2]} grid"
 
 
+@torch._dynamo.disable(recursive=True)  # see _cast_product
 def _traverse(
     labels: Tensor,  # (X, Y, Z) int64
     num_rays: int,
@@ -321,6 +329,9 @@ def _traverse(
     return distance, hit
 
 
+# Data-dependent by nature (rays retire as they hit): run eagerly under torch.compile, as
+# one graph break, rather than letting dynamo split it at every compaction.
+@torch._dynamo.disable(recursive=True)
 def _cast_product(
     labels: Tensor,
     origins: Tensor,

@@ -28,7 +28,15 @@ from jaxtyping import Float, Int
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
-from dego._policy import check_dtype, check_finite_with, check_memory, compute_dtype
+from dego import _serialization
+from dego._policy import (
+    check_dtype,
+    check_memory,
+    compute_dtype,
+    finite_check,
+    float32_under_autocast,
+    run_checks,
+)
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
 from dego.gaussians import QUATERNION_EPS, GaussianSet, _gram_of_scaled_rotation, _rotation_matrices
@@ -61,7 +69,7 @@ def _log_normaliser_bound(dtype: torch.dtype) -> float:
 
 
 @dataclasses.dataclass(frozen=True)
-class VoxelOutput:
+class VoxelOutput(_serialization.DictForm):
     """Voxelised Gaussians.
 
     Attributes:
@@ -194,16 +202,13 @@ def _check_values(fields: dict[str, Tensor]) -> None:
     quaternions or opacities outside [0, 1]; one host sync when everything is valid."""
     scales, quats, opacities = fields["scales"], fields["quats"], fields["opacities"]
     outside = (opacities < 0) | (opacities > 1)
-    non_positive, zero_norm, out_of_range = check_finite_with(
-        list(fields.items()),
-        (scales <= 0).sum(),
-        (torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS).sum(),
-        outside.sum(),
-    )
-    if non_positive:
+    non_positive = scales <= 0
+    zero_norm = torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS
+
+    def scales_error() -> Exception:
         message = (
-            f"scales: {non_positive} of {scales.numel()} values are <= 0 (e.g. "
-            f"{scales[scales <= 0][0].item():.6g}); voxelize needs positive standard "
+            f"scales: {int(non_positive.sum())} of {scales.numel()} values are <= 0 (e.g. "
+            f"{scales[non_positive][0].item():.6g}); voxelize needs positive standard "
             "deviations (its precisions use 1/s^2)"
         )
         if bool((scales < 0).all()):
@@ -211,23 +216,35 @@ def _check_values(fields: dict[str, Tensor]) -> None:
                 "; every value is negative, which looks like log-scales: use "
                 'GaussianSet.from_tensors(..., scale_space="log")'
             )
-        raise ValueError(message)
-    if zero_norm:
-        raise ValueError(
-            f"quats: {zero_norm} of {quats.shape[:-1].numel()} quaternions have zero norm "
-            f"(<= {QUATERNION_EPS:g}) and encode no rotation"
+        return ValueError(message)
+
+    def quats_error() -> Exception:
+        return ValueError(
+            f"quats: {int(zero_norm.sum())} of {quats.shape[:-1].numel()} quaternions have "
+            f"zero norm (<= {QUATERNION_EPS:g}) and encode no rotation"
         )
-    if out_of_range:
+
+    def opacities_error() -> Exception:
+        count = int(outside.sum())
         message = (
-            f"opacities: {out_of_range} of {opacities.numel()} values lie outside [0, 1] "
+            f"opacities: {count} of {opacities.numel()} values lie outside [0, 1] "
             f"(e.g. {opacities[outside][0].item():.6g})"
         )
-        if out_of_range == opacities.numel():
+        if count == opacities.numel():
             message += (
                 "; every value lies outside [0, 1], which looks like logits: use "
                 'GaussianSet.from_tensors(..., opacity_space="logit")'
             )
-        raise ValueError(message)
+        return ValueError(message)
+
+    run_checks(
+        [finite_check(name, t) for name, t in fields.items()]
+        + [
+            (~non_positive.any(), "scales: values are <= 0", scales_error),
+            (~zero_norm.any(), "quats: quaternions have zero norm", quats_error),
+            (~outside.any(), "opacities: values lie outside [0, 1]", opacities_error),
+        ]
+    )
 
 
 def _check_size(
@@ -408,6 +425,7 @@ def _pair_terms(
     )
 
 
+@float32_under_autocast()
 @typechecked
 def voxelize(
     gaussians: GaussianSet,
@@ -592,6 +610,9 @@ def _voxelize(
     return VoxelOutput(density=out.density.to(out_dtype), features=out.features.to(out_dtype))
 
 
+# Data-dependent by nature (the number of (Gaussian, voxel) pairs): run eagerly under
+# torch.compile, as one graph break, rather than recompiling for every pair count.
+@torch._dynamo.disable(recursive=True)
 def _voxelize_boxes(
     bn: tuple[int, int],
     grid: VoxelGrid,
@@ -741,6 +762,9 @@ def _cube_pair_terms(
     )
 
 
+# Data-dependent by nature (the number of (Gaussian, voxel) pairs): run eagerly under
+# torch.compile, as one graph break, rather than recompiling for every pair count.
+@torch._dynamo.disable(recursive=True)
 def _voxelize_cube(
     bn: tuple[int, int],
     grid: VoxelGrid,

@@ -17,6 +17,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from dego._policy import float32_under_autocast
 from dego.gaussians import GaussianSet
 from dego.splatting.projection import Projection
 from dego.splatting.splatter import SplatConfig, render_channels_last
@@ -84,6 +85,11 @@ def _check_shape(name: str, tensor: Any, expected: tuple[int | str, ...]) -> Non
         raise ValueError(f"{name}: expected shape [{described}], got {list(shape)}")
 
 
+# Under torch.compile the adapter runs eagerly, as one graph break: its gsplat-layout
+# bookkeeping (``retain_grad`` on ``meta["means2d"]``, the packed layout's data-dependent
+# ``nonzero``) cannot be traced. ``dego.splat`` is the compile-friendly entry point.
+@torch._dynamo.disable(recursive=True)
+@float32_under_autocast()
 def rasterization(
     means: Tensor,
     quats: Tensor,

@@ -13,6 +13,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from dego._policy import run_checks
+from dego._typing import _is_compiling
+
 _SMALL_INTS = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 
 
@@ -72,18 +75,18 @@ def as_mask_tensor(mask: Tensor | np.ndarray, shape: torch.Size, device: torch.d
 def _check_range(name: str, labels: Tensor, num_classes: int, allowed: int | None) -> None:
     if labels.numel() == 0:
         return
-    low, high = (int(v) for v in torch.aminmax(labels))
-    if low >= 0 and high < num_classes:
-        return
     bad = (labels < 0) | (labels >= num_classes)
     if allowed is not None:
         bad &= labels != allowed
-    if bool(bad.any()):
+
+    def error() -> Exception:
         value = int(labels[bad][0])
         extra = f" or the ignore label {allowed}" if allowed is not None else ""
-        raise ValueError(
+        return ValueError(
             f"{name}: label {value} is out of range; expected 0..{num_classes - 1}{extra}"
         )
+
+    run_checks([(~bad.any(), f"{name}: a label is out of range 0..{num_classes - 1}", error)])
 
 
 def confusion_matrix(
@@ -153,9 +156,13 @@ def confusion_matrix(
         outside = as_mask_tensor(mask, gt.shape, gt.device).logical_not()
         key.add_(outside.to(key_dtype), alpha=span)
     bins = num_classes * num_classes
-    counts = torch.bincount(key.reshape(-1), minlength=bins)[:bins].reshape(
-        num_classes, num_classes
-    )
+    flat = key.reshape(-1)
+    if _is_compiling():  # bincount's output length depends on the data: no graph break
+        histogram = torch.zeros(2 * span, dtype=torch.int64, device=flat.device)
+        histogram.scatter_add_(0, flat.long(), torch.ones_like(flat, dtype=torch.int64))
+    else:
+        histogram = torch.bincount(flat, minlength=bins)
+    counts = histogram[:bins].reshape(num_classes, num_classes)
     if removed_classes:
         counts[list(removed_classes)] = 0
     return counts

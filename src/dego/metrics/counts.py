@@ -2,20 +2,30 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+_CONFIG_KEY = "_extra_state"
+"""Where a persistent metric's configuration goes in ``state_dict`` (``nn.Module``'s extra-state
+key, so that checkpoints saved before counts became opt-in still load)."""
+
 
 class CountingMetric(nn.Module):
     """Base class: int64 count buffers (named by ``COUNTS``) with torchmetrics-style
-    ``merge / reset / sync`` and a configuration saved in ``state_dict`` (as extra state)
-    and checked before anything is loaded or merged.
+    ``merge / reset / sync / persistent`` and a configuration checked before anything is
+    merged or loaded.
 
-    Subclasses register the buffers, implement ``_config()`` and read their counts with
-    ``_totals()`` (the synced totals after :meth:`sync`, else the local counts).
+    The counts are evaluation state, not model state: by default they and the configuration
+    stay out of ``state_dict``, so a model that holds a metric as a submodule saves and
+    loads (``strict=True``) exactly as it would without it. :meth:`persistent` opts in.
+
+    Subclasses register the buffers with :meth:`_add_count`, implement ``_config()`` and
+    read their counts with ``_totals()`` (the synced totals after :meth:`sync`, else the
+    local counts).
     """
 
     COUNTS: tuple[str, ...] = ()
@@ -23,6 +33,11 @@ class CountingMetric(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self._synced: list[Tensor] | None = None
+        self._persist = False
+
+    def _add_count(self, name: str, count: Tensor) -> None:
+        """Register an int64 count buffer (out of ``state_dict`` until :meth:`persistent`)."""
+        self.register_buffer(name, count, persistent=self._persist)
 
     def _config(self) -> dict[str, Any]:
         raise NotImplementedError
@@ -75,12 +90,22 @@ class CountingMetric(nn.Module):
         return self
 
     # -- (de)serialisation ------------------------------------------------------------
-    def get_extra_state(self) -> dict[str, Any]:
-        return self._config()
+    def persistent(self, mode: bool = True) -> CountingMetric:
+        """Save the counts and the configuration in ``state_dict`` (``mode=True``) or not
+        (``False``, the default of a new metric); returns ``self``.
 
-    def set_extra_state(self, state: dict[str, Any]) -> None:
-        self._check_saved_config(state)
-        self._changed()
+        torchmetrics' name for the same switch. A persistent metric saves its counts (keys
+        ``<name>.<count>``) and configuration (``<name>._extra_state``), refuses a state
+        saved under another configuration with ``ValueError`` and, with ``strict=True``,
+        reports its keys as missing when a ``state_dict`` lacks them.
+        """
+        self._persist = bool(mode)
+        for name in self.COUNTS:
+            if self._persist:
+                self._non_persistent_buffers_set.discard(name)
+            else:
+                self._non_persistent_buffers_set.add(name)
+        return self
 
     def _check_saved_config(self, state: Any) -> None:
         if state != self._config():
@@ -88,13 +113,63 @@ class CountingMetric(nn.Module):
                 f"state_dict: saved configuration {state} differs from {self._config()}"
             )
 
-    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
-        # Check the configuration before any count is overwritten, so that a refused
-        # state_dict leaves this metric as it was.
-        key = prefix + "_extra_state"
-        if key in state_dict:
-            self._check_saved_config(state_dict[key])
-        super()._load_from_state_dict(state_dict, prefix, *args)
+    def _save_to_state_dict(
+        self, destination: dict[str, Any], prefix: str, keep_vars: bool
+    ) -> None:
+        super()._save_to_state_dict(destination, prefix, keep_vars)  # persistent buffers only
+        if self._persist:
+            destination[prefix + _CONFIG_KEY] = self._config()
+
+    def _load_from_state_dict(
+        self,
+        state_dict: dict[str, Any],
+        prefix: str,
+        local_metadata: dict[str, Any],
+        strict: bool,
+        missing_keys: list[str],
+        unexpected_keys: list[str],
+        error_msgs: list[str],
+    ) -> None:
+        # Whatever the persistence, keys the metric once saved are its own (never
+        # "unexpected"), and the configuration is checked before any count is overwritten,
+        # so that a refused state_dict leaves this metric as it was.
+        config_key = prefix + _CONFIG_KEY
+        keys = {name: prefix + name for name in self.COUNTS}
+        if config_key in state_dict:
+            saved = state_dict.pop(config_key)
+            if saved != self._config():
+                if self._persist:
+                    self._check_saved_config(saved)
+                warnings.warn(
+                    f"state_dict: saved configuration {saved} differs from {self._config()}; "
+                    f"the saved counts of {prefix.rstrip('.') or type(self).__name__!r} are "
+                    "ignored (its counts are not persistent; call .persistent() to make this "
+                    "an error)",
+                    UserWarning,
+                    stacklevel=4,
+                )
+                for key in keys.values():
+                    state_dict.pop(key, None)
+        elif self._persist and strict:
+            missing_keys.append(config_key)
+        if not self._persist:  # non-persistent buffers: torch would skip them, load them here
+            for name, key in keys.items():
+                if key not in state_dict:
+                    continue
+                value, count = state_dict.pop(key), getattr(self, name)
+                if not isinstance(value, Tensor) or value.shape != count.shape:
+                    shape = tuple(value.shape) if isinstance(value, Tensor) else type(value)
+                    error_msgs.append(
+                        f"size mismatch for {key}: copying a count of shape {shape} from the "
+                        f"checkpoint, the shape in the current metric is {tuple(count.shape)}."
+                    )
+                    continue
+                with torch.no_grad():
+                    count.copy_(value)
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        self._changed()
 
 
 __all__ = ["CountingMetric"]

@@ -22,7 +22,8 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from dego._policy import check_finite, check_memory
+from dego import _serialization
+from dego._policy import check_finite, check_memory, run_checks
 from dego._typing import typechecked
 from dego.classes import CLASS_NAMES, FREE_LABEL, NUM_CLASSES
 from dego.gaussians import _rotation_matrices
@@ -98,7 +99,7 @@ def lidar_origins(
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class RayIoUReport:
+class RayIoUReport(_serialization.DictForm):
     """RayIoU scores (fractions; NaN for classes absent from gt and predictions).
 
     Attributes:
@@ -151,45 +152,42 @@ def _fmt(value: float) -> str:
     return f"{'-':>7}" if math.isnan(value) else f"{value:>7.3f}"
 
 
+def _masked_bincount(labels: Tensor, mask: Tensor, num_classes: int) -> Tensor:
+    """``(C,)`` int64 counts of ``labels`` (in ``0..C-1``) where ``mask`` is True."""
+    counts = torch.zeros(num_classes, dtype=torch.int64, device=labels.device)
+    return counts.scatter_add_(0, labels, mask.to(torch.int64))
+
+
 def _nanmean(values: Tensor) -> float:
     finite = values[~values.isnan()]
     return float(finite.mean()) if finite.numel() else math.nan
 
 
-class RayIoU(CountingMetric):
-    """Data-set RayIoU with a torchmetrics-style ``update / compute / reset / merge / sync``.
+@dataclasses.dataclass(frozen=True, eq=False)
+class _RayIoUSpec:
+    """A validated RayIoU configuration and its two steps, shared by :class:`RayIoU` and
+    ``dego.compat.torchmetrics.RayIoUMetric``: casting and counting one sample
+    (:meth:`counts`) and summarising pooled counts (:meth:`report`)."""
 
-    Args:
-        thresholds: distance thresholds in metres (SparseOcc: 1, 2, 4).
-        num_classes: C, labels including free (18).
-        free_label: the empty label (17).
-        class_ids: the classes averaged into RayIoU (default: every label but free, i.e.
-            the 17 classes SparseOcc averages, others and other_flat included).
-        grid: the label grids' voxel grid (default Occ3D).
-        rays: ``(R, 3)`` ray directions (default :func:`dego.raycast.generate_lidar_rays`),
-            finite and non-zero, of any length; stored as float32 like SparseOcc's.
-        device: where the state lives.
+    thresholds: tuple[float, ...]
+    num_classes: int
+    free_label: int
+    class_ids: tuple[int, ...]
+    grid: VoxelGrid
+    rays: Tensor  # (R, 3) float32, on the CPU
+    rays_digest: str
 
-    State (int64 buffers): ``gt_count (C,)``, ``pred_count (C,)``, ``true_positives
-    (len(thresholds), C)``, pooled over every scored ray.
-    """
-
-    COUNTS = ("gt_count", "pred_count", "true_positives")
-    gt_count: Tensor
-    pred_count: Tensor
-    true_positives: Tensor
-
-    def __init__(
-        self,
-        thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
-        num_classes: int = NUM_CLASSES,
-        free_label: int = FREE_LABEL,
-        class_ids: Sequence[int] | None = None,
-        grid: VoxelGrid | None = None,
-        rays: Tensor | None = None,
-        device: torch.device | str | None = None,
-    ) -> None:
-        super().__init__()
+    @classmethod
+    def make(
+        cls,
+        thresholds: Sequence[float],
+        num_classes: int,
+        free_label: int,
+        class_ids: Sequence[int] | None,
+        grid: VoxelGrid | None,
+        rays: Tensor | None,
+    ) -> _RayIoUSpec:
+        """Check the arguments of :class:`RayIoU` (errors name them)."""
         thresholds = tuple(float(t) for t in thresholds)
         if not thresholds or any(not math.isfinite(t) or t <= 0 for t in thresholds):
             raise ValueError(f"thresholds: expected positive distances, got {thresholds!r}")
@@ -204,9 +202,6 @@ class RayIoU(CountingMetric):
             raise ValueError(
                 f"class_ids: expected non-free ids in 0..{num_classes - 1}, got {class_ids!r}"
             )
-        self.thresholds, self.num_classes, self.free_label = thresholds, num_classes, free_label
-        self.class_ids = class_ids
-        self.grid = VoxelGrid.occ3d() if grid is None else grid
         if rays is None:
             rays = generate_lidar_rays()
         if not isinstance(rays, Tensor) or not rays.is_floating_point():
@@ -215,22 +210,47 @@ class RayIoU(CountingMetric):
         if rays.ndim != 2 or rays.shape[-1] != 3 or rays.shape[0] == 0:
             raise ValueError(f"rays: expected (R, 3) directions, got {tuple(rays.shape)}")
         check_finite("rays", rays)
-        rays = rays.float()  # SparseOcc's rays are float32
+        rays = rays.detach().float().cpu()  # SparseOcc's rays are float32
         zero = (rays == 0).all(-1)
         if bool(zero.any()):
             raise ValueError(
                 f"rays: {int(zero.sum())} of {rays.shape[0]} directions are zero vectors "
                 "(or underflow float32); expected non-zero directions"
             )
-        self.register_buffer("rays", rays, persistent=False)
-        kw = {"dtype": torch.int64, "device": device}
-        self.register_buffer("gt_count", torch.zeros(num_classes, **kw))
-        self.register_buffer("pred_count", torch.zeros(num_classes, **kw))
-        self.register_buffer("true_positives", torch.zeros(len(thresholds), num_classes, **kw))
-        # identifies the ray pattern in the configuration (merge / load_state_dict check it)
-        self._rays_digest = hashlib.sha256(self.rays.cpu().numpy().tobytes()).hexdigest()[:16]
+        return cls(
+            thresholds=thresholds,
+            num_classes=num_classes,
+            free_label=free_label,
+            class_ids=class_ids,
+            grid=VoxelGrid.occ3d() if grid is None else grid,
+            rays=rays,
+            # identifies the ray pattern in the configuration (merge / load_state_dict check it)
+            rays_digest=hashlib.sha256(rays.numpy().tobytes()).hexdigest()[:16],
+        )
 
-    def _check_labels(self, name: str, labels: Tensor | np.ndarray) -> Tensor:
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        if self.num_classes == NUM_CLASSES:
+            return tuple(CLASS_NAMES)
+        return tuple(f"class_{i}" for i in range(self.num_classes))
+
+    def config(self) -> dict[str, Any]:
+        """The configuration as plain data (compared by merge / load_state_dict, saved)."""
+        return {
+            "thresholds": list(self.thresholds),
+            "num_classes": self.num_classes,
+            "free_label": self.free_label,
+            "class_ids": list(self.class_ids),
+            "grid": [list(self.grid.lower), list(self.grid.upper), list(self.grid.voxel_size)],
+            "rays": [int(self.rays.shape[0]), self.rays_digest],
+        }
+
+    def count_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The shapes of the int64 counts, by name (the state of both metric classes)."""
+        c = self.num_classes
+        return {"gt_count": (c,), "pred_count": (c,), "true_positives": (len(self.thresholds), c)}
+
+    def check_labels(self, name: str, labels: Tensor | np.ndarray) -> Tensor:
         if isinstance(labels, np.ndarray):
             labels = as_label_tensor(name, labels) if labels.dtype.kind in "iu" else labels
         if (
@@ -250,14 +270,139 @@ class RayIoU(CountingMetric):
             )
         labels = labels.long()
         if labels.numel():
-            low, high = (int(v) for v in torch.aminmax(labels))
-            if low < 0 or high >= self.num_classes:
+            c = self.num_classes
+
+            def error() -> Exception:
+                low, high = (int(v) for v in torch.aminmax(labels))
                 bad = low if low < 0 else high
-                raise ValueError(
-                    f"{name}: labels must lie in 0..{self.num_classes - 1}, found {bad} "
+                return ValueError(
+                    f"{name}: labels must lie in 0..{c - 1}, found {bad} "
                     f"(values {low}..{high}); RayIoU has no ignore label"
                 )
+
+            ok = ((labels >= 0) & (labels < c)).all()
+            run_checks([(ok, f"{name}: labels must lie in 0..{c - 1}", error)])
         return labels
+
+    # Ray traversal is data-dependent: under torch.compile a sample is cast and scored
+    # eagerly, as one graph break.
+    @torch._dynamo.disable(recursive=True)
+    def counts(
+        self,
+        pred: Tensor | np.ndarray,
+        gt: Tensor | np.ndarray,
+        origins: Tensor | np.ndarray,
+        rays: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """``gt_count (C,)``, ``pred_count (C,)`` and ``true_positives (T, C)`` of one
+        sample, on ``gt``'s device (the checks and errors of :meth:`RayIoU.update`).
+        ``rays``: this configuration's rays already on a device (default: ``self.rays``)."""
+        pred, gt = self.check_labels("pred", pred), self.check_labels("gt", gt)
+        if isinstance(origins, np.ndarray):
+            origins = torch.from_numpy(np.ascontiguousarray(origins))
+        if not isinstance(origins, Tensor):
+            raise TypeError(
+                f"origins: expected a (K, 3) tensor or array, got {type(origins).__name__}"
+            )
+        if origins.dtype == torch.bool or origins.is_complex():
+            raise TypeError(f"origins: expected real coordinates, got {origins.dtype}")
+        if origins.ndim != 2 or origins.shape[-1] != 3:
+            raise ValueError(f"origins: expected (K, 3), got {tuple(origins.shape)}")
+        if origins.shape[0] == 0:
+            raise ValueError("origins: need at least one origin, got K = 0")
+        if origins.is_floating_point():
+            check_finite("origins", origins)
+        # both casts' results, then per ray: distances and labels gathered, the error and a
+        # bool per threshold
+        rays = self.rays if rays is None else rays
+        n, t = origins.shape[0] * rays.shape[0], len(self.thresholds)
+        per_ray = 2 * 12 + 48 + 2 * t
+        check_memory("RayIoU.update", _cast_bytes(n, self.grid, per_ray), _cast_sizes(n, self.grid))
+        device = gt.device
+        pred = pred.to(device)
+        # SparseOcc's convention: float64 origins, float32 rays
+        origins, rays = origins.to(device, torch.float64), rays.to(device, torch.float32)
+        grid, free = self.grid, self.free_label
+        what = "RayIoU.update"
+        gt_distance, gt_label = _cast_product(gt, origins, rays, grid, free, what)
+        pred_distance, pred_label = _cast_product(pred, origins, rays, grid, free, what)
+        # Masked counts rather than boolean indexing: no data-dependent shape (compiles).
+        scored = gt_label != self.free_label
+        error = (pred_distance - gt_distance).abs()
+        c = self.num_classes
+        agree = scored & (gt_label == pred_label)
+        thresholds = torch.tensor(self.thresholds, dtype=error.dtype, device=device)
+        close = error[None] < thresholds[:, None]  # (thresholds, rays)
+        tp = torch.stack([_masked_bincount(gt_label, agree & row, c) for row in close])
+        gt_count = _masked_bincount(gt_label, scored, c)
+        return gt_count, _masked_bincount(pred_label, scored, c), tp
+
+    def report(self, gt: Tensor, pred: Tensor, tp: Tensor) -> RayIoUReport:
+        """The :class:`RayIoUReport` of pooled counts."""
+        if int(gt.sum()) == 0:
+            raise RuntimeError("compute: no scored ray yet (every gt ray hit free space?)")
+        per_class = tp.double() / (gt + pred - tp).double()  # (thresholds, C)
+        per_class = per_class.cpu()
+        ids = list(self.class_ids)
+        at = tuple(_nanmean(row[ids]) for row in per_class)
+        return RayIoUReport(
+            thresholds=self.thresholds,
+            per_class=per_class,
+            at=at,
+            rayiou=_nanmean(per_class[:, ids].reshape(-1)),
+            class_ids=self.class_ids,
+            class_names=self.class_names,
+        )
+
+
+class RayIoU(CountingMetric):
+    """Data-set RayIoU with a torchmetrics-style ``update / compute / reset / merge / sync``.
+
+    Args:
+        thresholds: distance thresholds in metres (SparseOcc: 1, 2, 4).
+        num_classes: C, labels including free (18).
+        free_label: the empty label (17).
+        class_ids: the classes averaged into RayIoU (default: every label but free, i.e.
+            the 17 classes SparseOcc averages, others and other_flat included).
+        grid: the label grids' voxel grid (default Occ3D).
+        rays: ``(R, 3)`` ray directions (default :func:`dego.raycast.generate_lidar_rays`),
+            finite and non-zero, of any length; stored as float32 like SparseOcc's.
+        device: where the state lives.
+
+    State (int64 buffers): ``gt_count (C,)``, ``pred_count (C,)``, ``true_positives
+    (len(thresholds), C)``, pooled over every scored ray; out of ``state_dict`` unless
+    :meth:`persistent` is called. ``dego.compat.torchmetrics.RayIoUMetric`` is the same
+    metric as a ``torchmetrics.Metric``.
+    """
+
+    COUNTS = ("gt_count", "pred_count", "true_positives")
+    gt_count: Tensor
+    pred_count: Tensor
+    true_positives: Tensor
+    rays: Tensor
+
+    def __init__(
+        self,
+        thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
+        num_classes: int = NUM_CLASSES,
+        free_label: int = FREE_LABEL,
+        class_ids: Sequence[int] | None = None,
+        grid: VoxelGrid | None = None,
+        rays: Tensor | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        self._spec = _RayIoUSpec.make(thresholds, num_classes, free_label, class_ids, grid, rays)
+        self.register_buffer("rays", self._spec.rays.clone(), persistent=False)
+        for name, shape in self._spec.count_shapes().items():
+            self._add_count(name, torch.zeros(shape, dtype=torch.int64, device=device))
+
+    # the configuration, read-only
+    thresholds = property(lambda self: self._spec.thresholds, doc="Thresholds in metres.")
+    num_classes = property(lambda self: self._spec.num_classes, doc="C, labels including free.")
+    free_label = property(lambda self: self._spec.free_label, doc="The empty label.")
+    class_ids = property(lambda self: self._spec.class_ids, doc="The classes averaged.")
+    grid = property(lambda self: self._spec.grid, doc="The label grids' voxel grid.")
 
     @typechecked
     def update(
@@ -284,77 +429,18 @@ class RayIoU(CountingMetric):
                 origins; an estimated memory need above :func:`dego.set_memory_limit`'s
                 limit (checked before casting).
         """
-        pred, gt = self._check_labels("pred", pred), self._check_labels("gt", gt)
-        if isinstance(origins, np.ndarray):
-            origins = torch.from_numpy(np.ascontiguousarray(origins))
-        if origins.dtype == torch.bool or origins.is_complex():
-            raise TypeError(f"origins: expected real coordinates, got {origins.dtype}")
-        if origins.ndim != 2 or origins.shape[-1] != 3:
-            raise ValueError(f"origins: expected (K, 3), got {tuple(origins.shape)}")
-        if origins.shape[0] == 0:
-            raise ValueError("origins: need at least one origin, got K = 0")
-        if origins.is_floating_point():
-            check_finite("origins", origins)
-        # both casts' results, then per ray: distances and labels gathered, the error and a
-        # bool per threshold
-        n, t = origins.shape[0] * self.rays.shape[0], len(self.thresholds)
-        per_ray = 2 * 12 + 48 + 2 * t
-        check_memory("RayIoU.update", _cast_bytes(n, self.grid, per_ray), _cast_sizes(n, self.grid))
-        device = gt.device
-        pred = pred.to(device)
-        # SparseOcc's convention: float64 origins, float32 rays
-        origins, rays = origins.to(device, torch.float64), self.rays.to(device)
-        grid, free = self.grid, self.free_label
-        what = "RayIoU.update"
-        gt_distance, gt_label = _cast_product(gt, origins, rays, grid, free, what)
-        pred_distance, pred_label = _cast_product(pred, origins, rays, grid, free, what)
-        scored = gt_label != self.free_label
-        gt_label, pred_label = gt_label[scored], pred_label[scored]
-        error = (pred_distance[scored] - gt_distance[scored]).abs()
-        c = self.num_classes
-        agree = gt_label == pred_label
-        thresholds = torch.tensor(self.thresholds, dtype=error.dtype, device=device)
-        close = error[None] < thresholds[:, None]  # (thresholds, rays)
-        tp = torch.stack([torch.bincount(gt_label[agree & row], minlength=c) for row in close]).to(
-            self.true_positives.device
-        )
-        self.gt_count += torch.bincount(gt_label, minlength=c).to(self.gt_count.device)
-        self.pred_count += torch.bincount(pred_label, minlength=c).to(self.pred_count.device)
-        self.true_positives += tp
+        gt_count, pred_count, tp = self._spec.counts(pred, gt, origins, rays=self.rays)
+        self.gt_count += gt_count.to(self.gt_count.device)
+        self.pred_count += pred_count.to(self.pred_count.device)
+        self.true_positives += tp.to(self.true_positives.device)
         self._changed()
 
     def compute(self) -> RayIoUReport:
         """IoU per threshold and class, RayIoU@t and RayIoU of everything seen."""
-        gt, pred, tp = self._totals()
-        if int(gt.sum()) == 0:
-            raise RuntimeError("compute: no scored ray yet (every gt ray hit free space?)")
-        per_class = tp.double() / (gt + pred - tp).double()  # (thresholds, C)
-        per_class = per_class.cpu()
-        ids = list(self.class_ids)
-        at = tuple(_nanmean(row[ids]) for row in per_class)
-        names = (
-            CLASS_NAMES
-            if self.num_classes == NUM_CLASSES
-            else tuple(f"class_{i}" for i in range(self.num_classes))
-        )
-        return RayIoUReport(
-            thresholds=self.thresholds,
-            per_class=per_class,
-            at=at,
-            rayiou=_nanmean(per_class[:, ids].reshape(-1)),
-            class_ids=self.class_ids,
-            class_names=tuple(names),
-        )
+        return self._spec.report(*self._totals())
 
     def _config(self) -> dict[str, Any]:
-        return {
-            "thresholds": list(self.thresholds),
-            "num_classes": self.num_classes,
-            "free_label": self.free_label,
-            "class_ids": list(self.class_ids),
-            "grid": [list(self.grid.lower), list(self.grid.upper), list(self.grid.voxel_size)],
-            "rays": [int(self.rays.shape[0]), self._rays_digest],
-        }
+        return self._spec.config()
 
     def extra_repr(self) -> str:
         return f"thresholds={self.thresholds}, num_classes={self.num_classes}"

@@ -11,6 +11,7 @@ import torch
 from jaxtyping import Float, Integer
 from torch import Tensor
 
+from dego import _serialization
 from dego._typing import typechecked
 
 
@@ -42,7 +43,7 @@ def _percent(value: float) -> str:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class OccupancyReport:
+class OccupancyReport(_serialization.DictForm):
     """Scores of a set of occupancy predictions; every value is a fraction in [0, 1] (or NaN).
 
     Attributes:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -152,6 +153,29 @@ def _chunk_backward(
     return grad_in, grad_mean, grad_conic, grad_opacity, grad_color, abs_mean
 
 
+COMPILED_KERNELS: str | None = "inductor"
+"""The ``torch.compile`` backend of the chunk kernels when a splat is itself being compiled
+(the compositing loop is data-dependent and runs eagerly; its kernels need not): read
+while tracing. ``None``: eager kernels."""
+
+_KERNELS: dict[str, tuple[Callable[..., Any], Callable[..., Any]]] = {}
+
+
+def chunk_kernels(backend: str | None) -> tuple[Callable[..., Any], Callable[..., Any]]:
+    """``(forward, backward)`` chunk kernels: the eager functions, or (``backend``, e.g.
+    ``"inductor"``) ``torch.compile``-d with dynamic shapes, compiled once per process
+    and backend. Compiled, the elementwise chains over ``(G, K, S, S)`` fuse into a few
+    loops, which is where a compiled splat gains its speed."""
+    if backend is None:
+        return _chunk_forward, _chunk_backward
+    if backend not in _KERNELS:
+        _KERNELS[backend] = (
+            torch.compile(_chunk_forward, backend=backend, dynamic=True),
+            torch.compile(_chunk_backward, backend=backend, dynamic=True),
+        )
+    return _KERNELS[backend]
+
+
 @dataclasses.dataclass(frozen=True)
 class _Step:
     """What backward needs of one (chunk, tile group) step: tiny next to its pairs."""
@@ -201,7 +225,9 @@ class _CompositeTiles(torch.autograd.Function):
         chunk_size: int,
         max_pairs: int,
         absgrad_sink: Callable[[Tensor], None] | None,
+        kernel_backend: str | None,
     ) -> tuple[Tensor, Tensor]:
+        chunk_forward, _ = chunk_kernels(kernel_backend)
         num_tiles, dim = lists.num_tiles, colors.shape[-1]
         device, dtype = colors.device, colors.dtype
         pixels = tile_size * tile_size
@@ -223,7 +249,7 @@ class _CompositeTiles(torch.autograd.Function):
                 valid = position < ends[group, None]
                 ids = lists.gaussians[position.clamp(max=last)]
                 record = _Step(group, ids, valid, transmittance[group], finished[group])
-                contribution, t_new, f_new = _chunk_forward(
+                contribution, t_new, f_new = chunk_forward(
                     *record.chunk_inputs(means2d, conics, opacities, colors, origins), rules
                 )
                 out.index_add_(0, group, contribution)
@@ -236,6 +262,7 @@ class _CompositeTiles(torch.autograd.Function):
 
         ctx.save_for_backward(means2d, conics, opacities, colors, origins)
         ctx.steps, ctx.rules, ctx.absgrad_sink = steps, rules, absgrad_sink
+        ctx.kernel_backend = kernel_backend
         return out.view(num_tiles, tile_size, tile_size, dim), transmittance
 
     @staticmethod
@@ -249,9 +276,10 @@ class _CompositeTiles(torch.autograd.Function):
             grads.append(torch.zeros_like(means2d))
         grad_out = grad_out.flatten(1, 2)  # (T, S*S, D)
         grad_t = grad_transmittance.clone()  # gradient of the running transmittance, per tile
+        _, chunk_backward = chunk_kernels(ctx.kernel_backend)
         for record in reversed(ctx.steps):
             ids, valid, group = record.ids, record.valid, record.group
-            grad_in, *per_gaussian = _chunk_backward(
+            grad_in, *per_gaussian = chunk_backward(
                 *record.chunk_inputs(means2d, conics, opacities, colors, origins),
                 ctx.rules,
                 grad_out[group],
@@ -265,7 +293,7 @@ class _CompositeTiles(torch.autograd.Function):
                 total.index_add_(0, flat_ids, grad.flatten(0, 1))
         if sink is not None:
             sink(grads.pop())
-        return (*grads, None, None, None, None, None, None)
+        return (*grads, None, None, None, None, None, None, None)
 
 
 def _tile_origins(lists: TileLists, tile_size: int, dtype: torch.dtype) -> Tensor:
@@ -289,12 +317,13 @@ def composite_tiles(
     chunk_size: int,
     max_pairs: int,
     absgrad_sink: Callable[[Tensor], None] | None = None,
+    kernel_backend: str | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Composite every tile; returns per-tile colour sums ``(T, S, S, D)`` and final
     transmittance ``(T, S, S)`` for the ``T = lists.num_tiles`` tiles. Differentiable
     w.r.t. ``means2d``, ``conics``, ``opacities`` and ``colors``. With ``absgrad_sink``,
     backward also sums each Gaussian's per-pixel ``|dL/d means2d|`` (AbsGS) and passes
-    the ``(M, 2)`` result to it."""
+    the ``(M, 2)`` result to it. ``kernel_backend``: see :func:`chunk_kernels`."""
     return _CompositeTiles.apply(
         means2d,
         conics,
@@ -306,4 +335,5 @@ def composite_tiles(
         chunk_size,
         max_pairs,
         absgrad_sink,
+        kernel_backend,
     )

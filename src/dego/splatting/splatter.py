@@ -14,15 +14,20 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor, nn
 
+from dego import _serialization
 from dego._policy import (
     HALF_DTYPES,
+    Check,
     check_dtype,
-    check_finite_with,
     check_memory,
     compute_dtype,
+    finite_check,
+    float32_under_autocast,
+    run_checks,
 )
-from dego._typing import typechecked
+from dego._typing import _is_compiling, typechecked
 from dego.gaussians import GaussianSet
+from dego.splatting import composite
 from dego.splatting.composite import CompositeRules, composite_tiles
 from dego.splatting.projection import (
     RADIUS_SIGMA,
@@ -40,7 +45,7 @@ ImageSize = tuple[SupportsIndex, SupportsIndex] | Sequence[SupportsIndex] | np.n
 
 
 @dataclasses.dataclass(frozen=True)
-class SplatOutput:
+class SplatOutput(_serialization.DictForm):
     """Rendered images, channels first.
 
     Attributes:
@@ -178,65 +183,70 @@ def _check_inputs(
     out_of_range = (opacities < 0) | (opacities > 1)
     finite = [(f"gaussians.{name}", t) for name, t in gaussians._items() if name != "features"]
     finite += [(name, t) for name, t in optional if t is not None]
-    # One host sync for every value check.
-    flags = check_finite_with(
-        finite,
-        torch.isfinite(world_to_cam).all(),
-        torch.isfinite(intrinsics).all(),
-        ((intrinsics[..., 0, 0] > 0) & (intrinsics[..., 1, 1] > 0)).all(),
-        ((intrinsics[..., 0, 1].abs() <= 1e-6 * focal) & (intrinsics[..., 1, 0] == 0)).all(),
-        _matrix_rows_ok(intrinsics, [0.0, 0.0, 1.0]).all(),
-        _matrix_rows_ok(world_to_cam, [0.0, 0.0, 0.0, 1.0]).all(),
-        transposed.any(),
-        out_of_range.any(),
-        out_of_range.all(),
-        (gaussians.scales < 0).all(),
+    pinhole = (
+        "intrinsics: expected pinhole matrices [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
+        "(zero skew, last row [0, 0, 1], tolerance 1e-6 relative). A resize, crop or "
+        "translation of the image folds into K (dego.cameras.resize_crop_intrinsics, "
+        "dego.cameras.apply_image_aug); an image rotation or flip does not: warp the "
+        "image instead, or move a rotation about the optical axis into world_to_cam. "
+        "To split a 3x4 lidar2img projection use dego.cameras.split_projection"
     )
-    (w2c_finite, k_finite, focal_ok, skew_ok, k_row_ok, w2c_row_ok) = flags[:6]
-    (looks_transposed, some_bad_opacity, all_bad_opacity, all_negative_scales) = flags[6:]
-    if not w2c_finite:
-        raise ValueError("world_to_cam: contains non-finite values")
-    if not k_finite:
-        raise ValueError("intrinsics: contains non-finite values")
-    if not focal_ok:
-        raise ValueError("intrinsics: focal lengths fx, fy must be positive")
-    if not (skew_ok and k_row_ok):
-        raise ValueError(
-            "intrinsics: expected pinhole matrices [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
-            "(zero skew, last row [0, 0, 1], tolerance 1e-6 relative). A resize, crop or "
-            "translation of the image folds into K (dego.cameras.resize_crop_intrinsics, "
-            "dego.cameras.apply_image_aug); an image rotation or flip does not: warp the "
-            "image instead, or move a rotation about the optical axis into world_to_cam. "
-            "To split a 3x4 lidar2img projection use dego.cameras.split_projection"
-        )
-    if not w2c_row_ok:
-        raise ValueError(
-            "world_to_cam: expected 4x4 rigid transforms with last row [0, 0, 0, 1]; a "
-            "projection matrix (K [R | t], lidar2img) splits with dego.cameras.split_projection"
-        )
-    if looks_transposed:
-        raise ValueError(
-            f"image_size: (H, W) = ({height}, {width}) looks transposed: a principal point "
-            f"(cx, cy) lies outside a {width} x {height} (W x H) image but inside the "
-            f"transposed one; pass image_size=(height, width)"
-        )
-    if all_negative_scales and gaussians.scales.numel():
-        raise ValueError(
-            "gaussians.scales: every scale is negative, which looks like log-scales; "
-            "use GaussianSet.from_tensors(..., scale_space='log') (or exp them)"
-        )
-    if some_bad_opacity:
+    rigid = (
+        "world_to_cam: expected 4x4 rigid transforms with last row [0, 0, 0, 1]; a "
+        "projection matrix (K [R | t], lidar2img) splits with dego.cameras.split_projection"
+    )
+    transposed_message = (
+        f"image_size: (H, W) = ({height}, {width}) looks transposed: a principal point "
+        f"(cx, cy) lies outside a {width} x {height} (W x H) image but inside the "
+        f"transposed one; pass image_size=(height, width)"
+    )
+    log_scales = (
+        "gaussians.scales: every scale is negative, which looks like log-scales; "
+        "use GaussianSet.from_tensors(..., scale_space='log') (or exp them)"
+    )
+    opacity_range = "gaussians.opacities: values lie outside [0, 1]"
+
+    def bad_opacities() -> Exception:
         hint = (
             ", which looks like logits: use GaussianSet.from_tensors(..., "
             "opacity_space='logit') (or apply a sigmoid)"
-            if all_bad_opacity
+            if bool(out_of_range.all())
             else "; if they are logits, use GaussianSet.from_tensors(..., "
             "opacity_space='logit'), else clamp them"
         )
-        raise ValueError(
+        return ValueError(
             f"gaussians.opacities: {int(out_of_range.sum())} of {opacities.numel()} values lie "
             f"outside [0, 1]{hint}"
         )
+
+    def fail(message: str) -> Callable[[], Exception]:
+        return lambda: ValueError(message)
+
+    def check(ok: Tensor, message: str) -> Check:
+        return ok, message, fail(message)
+
+    scales = gaussians.scales
+    # One host sync for every value check (none under torch.compile).
+    run_checks(
+        [finite_check(name, t) for name, t in finite]
+        + [
+            check(torch.isfinite(world_to_cam).all(), "world_to_cam: contains non-finite values"),
+            check(torch.isfinite(intrinsics).all(), "intrinsics: contains non-finite values"),
+            check(
+                ((intrinsics[..., 0, 0] > 0) & (intrinsics[..., 1, 1] > 0)).all(),
+                "intrinsics: focal lengths fx, fy must be positive",
+            ),
+            check(
+                ((intrinsics[..., 0, 1].abs() <= 1e-6 * focal) & (intrinsics[..., 1, 0] == 0)).all()
+                & _matrix_rows_ok(intrinsics, [0.0, 0.0, 1.0]).all(),
+                pinhole,
+            ),
+            check(_matrix_rows_ok(world_to_cam, [0.0, 0.0, 0.0, 1.0]).all(), rigid),
+            check(~transposed.any(), transposed_message),
+            check(~(scales < 0).all() | (scales.numel() == 0), log_scales),
+            (~out_of_range.any(), opacity_range, bad_opacities),
+        ]
+    )
 
 
 _GSPLAT_KEYWORDS = {
@@ -302,6 +312,7 @@ def _check_call(name: str, cameras_at: int) -> Callable[[F], F]:
     return decorate
 
 
+@float32_under_autocast()
 @_check_call("splat", cameras_at=1)
 @typechecked
 def splat(
@@ -414,6 +425,47 @@ class _Composited:
     channels: int  # feature channels C (D = C + 1 with depth)
 
 
+# Data-dependent by nature (the pair count, each tile's list length): run eagerly under
+# torch.compile, as one graph break, rather than letting dynamo split it at each of its
+# dynamic-shape operators. Its chunk kernels are compiled when the caller is.
+@torch._dynamo.disable(recursive=True)
+def _bin_and_composite(
+    proj: Projection,
+    extents: Tensor,
+    max_sigma: Tensor,
+    means2d: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    image_size: tuple[int, int],
+    config: SplatConfig,
+    absgrad_sink: Callable[[Tensor], None] | None,
+    kernel_backend: str | None,
+) -> tuple[Tensor, Tensor, TileLists]:
+    lists = build_tile_lists(
+        proj.means2d.flatten(0, 1),
+        extents.flatten(0, 1),
+        proj.depths.flatten(0, 1),
+        image_size,
+        config.tile_size,
+        conics=proj.conics.flatten(0, 1),
+        max_sigma=max_sigma.flatten(0, 1),
+    )
+    tiles, transmittance = composite_tiles(
+        lists,
+        means2d,
+        proj.conics.reshape(-1, 3),
+        opacities,
+        colors,
+        tile_size=config.tile_size,
+        rules=CompositeRules(config.max_alpha, config.alpha_min, config.transmittance_min),
+        chunk_size=config.chunk_size,
+        max_pairs=config.max_pairs,
+        absgrad_sink=absgrad_sink,
+        kernel_backend=kernel_backend,
+    )
+    return tiles, transmittance, lists
+
+
 def _composite(
     gaussians: GaussianSet,
     world_to_cam: Tensor,
@@ -460,32 +512,23 @@ def _composite(
     extents, max_sigma = contributing_extents(
         proj.variances2d, proj.radii_xy, opacities, config.alpha_min
     )
-    lists = build_tile_lists(
-        proj.means2d.flatten(0, 1),
-        extents.flatten(0, 1),
-        proj.depths.flatten(0, 1),
-        image_size,
-        config.tile_size,
-        conics=proj.conics.flatten(0, 1),
-        max_sigma=max_sigma.flatten(0, 1),
-    )
     means2d = proj.means2d if means2d_hook is None else means2d_hook(proj)
     if config.absgrad and absgrad_sink is None:
 
         def absgrad_sink(total: Tensor) -> None:
             proj.means2d.absgrad = total.view_as(proj.means2d)  # type: ignore[attr-defined]
 
-    tiles, transmittance = composite_tiles(
-        lists,
+    tiles, transmittance, lists = _bin_and_composite(
+        proj,
+        extents,
+        max_sigma,
         means2d.reshape(-1, 2),
-        proj.conics.reshape(-1, 3),
         opacities.reshape(-1),
         colors.reshape(b * v * n, colors.shape[-1]),
-        tile_size=config.tile_size,
-        rules=CompositeRules(config.max_alpha, config.alpha_min, config.transmittance_min),
-        chunk_size=config.chunk_size,
-        max_pairs=config.max_pairs,
-        absgrad_sink=absgrad_sink if config.absgrad else None,
+        image_size,
+        config,
+        absgrad_sink if config.absgrad else None,
+        composite.COMPILED_KERNELS if _is_compiling() else None,
     )
     return _Composited(tiles, transmittance, lists, proj, channels)
 

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from dego import _serialization
 from dego._checks import check_int, check_positive
 from dego._policy import check_dtype, check_memory
 from dego._typing import typechecked
@@ -81,7 +82,7 @@ class AttentionBlock(nn.Module):
 
 
 @dataclasses.dataclass(frozen=True)
-class TeacherOutput:
+class TeacherOutput(_serialization.DictForm):
     """Per-block outputs of :class:`FactorizedSpatioTemporalTeacher`.
 
     Attributes:

@@ -10,7 +10,7 @@ import torch
 from jaxtyping import Bool, Float, UInt8
 from torch import Tensor, nn
 
-from dego._policy import check_dtype, compute_dtype
+from dego._policy import check_dtype, compute_dtype, float32_under_autocast
 from dego._typing import typechecked
 from dego.metrics.confusion import as_mask_tensor
 
@@ -69,6 +69,7 @@ def cosine_distance_map(
     return _distance(student, teacher, eps).to(student.dtype)
 
 
+@float32_under_autocast()
 @typechecked
 def distillation_loss(
     student: Float[Tensor, "B V C H W"],
