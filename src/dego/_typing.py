@@ -63,10 +63,8 @@ def _array_alternative(hint: Any) -> _Array | None:
 
 
 def _parameter_spec(name: str, hint: Any) -> _Spec | None:
-    alternatives = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union,) else ()
-    if not alternatives and type(hint).__name__ == "UnionType":
-        alternatives = typing.get_args(hint)
-    alternatives = alternatives or (hint,)
+    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+    alternatives = typing.get_args(hint) if union else (hint,)
     arrays = [a for a in (_array_alternative(h) for h in alternatives) if a is not None]
     if not arrays:
         return None

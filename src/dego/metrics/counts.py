@@ -9,9 +9,18 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from dego.classes import CLASS_NAMES, NUM_CLASSES
+
 _CONFIG_KEY = "_extra_state"
 """Where a persistent metric's configuration goes in ``state_dict`` (``nn.Module``'s extra-state
 key, so that checkpoints saved before counts became opt-in still load)."""
+
+
+def class_names(num_classes: int) -> tuple[str, ...]:
+    """Report names of ``num_classes`` labels: Occ3D-nuScenes' for 18, else ``class_<i>``."""
+    if num_classes == NUM_CLASSES:
+        return tuple(CLASS_NAMES)
+    return tuple(f"class_{i}" for i in range(num_classes))
 
 
 class CountingMetric(nn.Module):

@@ -12,13 +12,13 @@ import torch
 from torch import Tensor
 
 from dego._typing import typechecked
-from dego.classes import CLASS_GROUPS, CLASS_NAMES, FREE_LABEL, NUM_CLASSES, PROTOCOL_CLASSES
+from dego.classes import CLASS_GROUPS, FREE_LABEL, NUM_CLASSES, PROTOCOL_CLASSES
 from dego.metrics.confusion import (
     _check_ignore_label,
     binary_occupancy_confusion,
     confusion_matrix,
 )
-from dego.metrics.counts import CountingMetric
+from dego.metrics.counts import CountingMetric, class_names
 from dego.metrics.report import OccupancyReport, per_class_iou
 
 WEAK_REMOVED_CLASSES = (0, 12)
@@ -92,9 +92,7 @@ class _OccupancySpec:
 
     @property
     def class_names(self) -> tuple[str, ...]:
-        if self.num_classes == NUM_CLASSES:
-            return tuple(CLASS_NAMES)
-        return tuple(f"class_{i}" for i in range(self.num_classes))
+        return class_names(self.num_classes)
 
     def config(self) -> dict[str, Any]:
         """The configuration as plain data (compared by merge / load_state_dict, saved)."""

@@ -25,11 +25,11 @@ from torch import Tensor
 from dego import _serialization
 from dego._policy import check_finite, check_memory, run_checks
 from dego._typing import typechecked
-from dego.classes import CLASS_NAMES, FREE_LABEL, NUM_CLASSES
+from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.gaussians import _rotation_matrices
 from dego.grid import VoxelGrid
 from dego.metrics.confusion import as_label_tensor
-from dego.metrics.counts import CountingMetric
+from dego.metrics.counts import CountingMetric, class_names
 from dego.raycast import _cast_bytes, _cast_product, _cast_sizes, generate_lidar_rays
 
 DEFAULT_THRESHOLDS = (1.0, 2.0, 4.0)
@@ -230,9 +230,7 @@ class _RayIoUSpec:
 
     @property
     def class_names(self) -> tuple[str, ...]:
-        if self.num_classes == NUM_CLASSES:
-            return tuple(CLASS_NAMES)
-        return tuple(f"class_{i}" for i in range(self.num_classes))
+        return class_names(self.num_classes)
 
     def config(self) -> dict[str, Any]:
         """The configuration as plain data (compared by merge / load_state_dict, saved)."""
