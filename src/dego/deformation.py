@@ -826,7 +826,8 @@ def deformation_loss(
             assert per_gaussian is not None
             w = per_gaussian[:, None]  # (B, 1, N)
             total_weight = w.sum() * value.shape[1]
-            term = (w * value).sum() / total_weight.clamp_min(torch.finfo(value.dtype).tiny)
+            # all-zero weights give 0 (numerator 0); tiny but positive sums divide exactly
+            term = (w * value).sum() / torch.where(total_weight > 0, total_weight, 1.0)
         reg = reg + getattr(weights, name) * term
     m = output.rigid_mask if output.rigid_mask.ndim == 2 else output.rigid_mask[:, steps]
     m = m[:, -1] if official else m
