@@ -12,8 +12,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dego import _march_numba, raycast
 from dego.grid import VoxelGrid
-from dego.raycast import MAX_STEPS, cast_rays, generate_lidar_rays, observed_voxels
+from dego.raycast import MAX_STEPS, _cast_product, cast_rays, generate_lidar_rays, observed_voxels
 from tests.ray_reference import (
     REFERENCE_MAX_STEPS,
     cast_all,
@@ -25,6 +26,15 @@ from tests.ray_reference import (
 FREE = 17
 CAR, BUS, PED = 4, 3, 7
 SQRT2, SQRT3 = math.sqrt(2.0), math.sqrt(3.0)
+
+KERNELS = ["torch", "numba"] if _march_numba.available() else ["torch"]
+
+
+@pytest.fixture(params=KERNELS, autouse=True)
+def kernel(request, monkeypatch) -> str:
+    """Every test here runs with both CPU traversals: the torch loop and the compiled kernel."""
+    monkeypatch.setattr(raycast, "CPU_KERNEL", request.param)
+    return request.param
 
 
 def unit_grid(shape: tuple[int, int, int], size: float = 1.0) -> VoxelGrid:
@@ -436,6 +446,90 @@ def test_matches_the_scalar_reference_on_lidar_rays() -> None:
     np.testing.assert_array_equal(label.numpy(), expected_label)
     np.testing.assert_array_equal(distance.numpy(), expected_distance)
     assert (expected_label != FREE).any() and (expected_distance < 0).any()
+
+
+@settings(max_examples=30)
+@given(st.one_of(ray_problems(), tie_problems()), st.integers(0, 2**32 - 1))
+def test_one_traversal_through_several_grids_equals_separate_casts(problem, seed) -> None:
+    """RayIoU casts prediction and ground truth together (the rays are shared); each grid's
+    hits are exactly those of a cast through that grid alone."""
+    labels, origins, directions, lower, size, shape = problem
+    upper = tuple(lo + n * size for lo, n in zip(lower, shape, strict=True))
+    grid = VoxelGrid(lower, upper, size)
+    rng = np.random.default_rng(seed)
+    other = np.where(rng.random(shape) < 0.3, rng.integers(0, 17, shape), labels)
+    grids = [torch.from_numpy(labels), torch.from_numpy(other), torch.from_numpy(labels)]
+    o, d = torch.from_numpy(origins), torch.from_numpy(directions)
+    distance, label = _cast_product(grids, o, d, grid, FREE, "test")
+    for i, labels_i in enumerate(grids):
+        alone_distance, alone_label = cast_rays(labels_i, o, d, grid)
+        assert torch.equal(label[i], alone_label)
+        assert torch.equal(distance[i], alone_distance)
+
+
+@settings(max_examples=20)
+@given(ray_problems())
+def test_compiled_kernel_and_torch_loop_agree_exactly(problem) -> None:
+    """The two CPU traversals give bit-identical hits, in both precision modes."""
+    if "numba" not in KERNELS:
+        pytest.skip("numba is not installed")
+    labels, origins, directions, lower, size, shape = problem
+    upper = tuple(lo + n * size for lo, n in zip(lower, shape, strict=True))
+    grid = VoxelGrid(lower, upper, size)
+    for dtype in (torch.float32, torch.float64):
+        o = torch.from_numpy(origins).to(dtype)
+        d = torch.from_numpy(directions).to(dtype)
+        results = {}
+        for name in ("torch", "numba"):
+            raycast.CPU_KERNEL = name
+            results[name] = cast_rays(torch.from_numpy(labels), o, d, grid)
+        assert torch.equal(results["torch"][0], results["numba"][0])
+        assert torch.equal(results["torch"][1], results["numba"][1])
+
+
+@pytest.mark.parametrize("chunk", [1, 4, 7, 10_000])
+def test_chunking_does_not_change_the_hits(chunk, monkeypatch) -> None:
+    """Blocks of whole origins (R <= CHUNK_RAYS) and flat blocks (R > CHUNK_RAYS) give
+    the hits of one block, for cast_rays and observed_voxels."""
+    grid = VoxelGrid((-4.0, -4.0, -1.0), (4.0, 4.0, 1.4), 0.4)
+    rng = np.random.default_rng(3)
+    labels = torch.from_numpy(np.where(rng.random(grid.shape) < 0.9, FREE, 4))
+    origins = torch.tensor([[0.1, 0.2, 0.3], [-3.9, 2.0, -0.5], [5.0, 0.0, 0.0]])
+    rays = generate_lidar_rays()[::1400]  # 11 rays
+    expected = cast_rays(labels, origins, rays, grid)
+    paired_o, paired_d = origins.repeat_interleave(len(rays), 0), rays.repeat(3, 1)
+    seen = observed_voxels(labels, paired_o, paired_d, grid)
+    monkeypatch.setattr(raycast, "CHUNK_RAYS", chunk)
+    got = cast_rays(labels, origins, rays, grid)
+    assert torch.equal(got[0], expected[0]) and torch.equal(got[1], expected[1])
+    assert torch.equal(observed_voxels(labels, paired_o, paired_d, grid), seen)
+
+
+def test_cpu_kernel_choice(monkeypatch) -> None:
+    monkeypatch.setattr(raycast, "CPU_KERNEL", "torch")
+    assert raycast.cpu_kernel() == "torch"
+    monkeypatch.setattr(raycast, "CPU_KERNEL", "auto")
+    assert raycast.cpu_kernel() == ("numba" if _march_numba.available() else "torch")
+    monkeypatch.setattr(raycast, "CPU_KERNEL", "cuda")
+    with pytest.raises(ValueError, match=r"CPU_KERNEL: expected 'auto', 'numba' or 'torch'"):
+        cast_rays(free((2, 2, 2)), torch.zeros(1, 3), torch.ones(1, 3), unit_grid((2, 2, 2)))
+    monkeypatch.setattr(_march_numba, "available", lambda: False)
+    monkeypatch.setattr(raycast, "CPU_KERNEL", "auto")
+    assert raycast.cpu_kernel() == "torch"
+    monkeypatch.setattr(raycast, "CPU_KERNEL", "numba")
+    with pytest.raises(ImportError, match=r"numba is not installed"):
+        raycast.cpu_kernel()
+
+
+def test_wide_label_values_use_the_int64_kernel() -> None:
+    """Labels beyond uint8 (negative, 255+, int64 extremes) are hit and returned as stored."""
+    grid = unit_grid((4, 1, 1))
+    info = torch.iinfo(torch.int64)
+    for value in (-1, 300, info.min, info.max):
+        labels = free((4, 1, 1))
+        labels[2] = value
+        distance, label = cast(labels, [[0.5, 0.5, 0.5]], [[1, 0, 0]], grid)
+        assert label == [value] and distance[0] == metres(2.5)
 
 
 # ---------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dego import _march_numba, raycast
 from dego.grid import VoxelGrid
 from dego.metrics import RayIoU, RayIoUReport, lidar_origins
 from dego.raycast import generate_lidar_rays
@@ -22,6 +23,13 @@ OTHERS, BUS, CAR, PED = 0, 3, 4, 7
 # a small Occ3D-like grid (0.4 m voxels, 8 x 8 x 2.4 m) and a subsample of the ray pattern
 SMALL_GRID = VoxelGrid((-4.0, -4.0, -1.0), (4.0, 4.0, 1.4), 0.4)
 SMALL_RAYS = generate_lidar_rays()[::53]  # 265 rays
+
+
+@pytest.fixture(params=["torch", "numba"] if _march_numba.available() else ["torch"], autouse=True)
+def kernel(request, monkeypatch) -> str:
+    """Every test here runs with both CPU traversals: the torch loop and the compiled kernel."""
+    monkeypatch.setattr(raycast, "CPU_KERNEL", request.param)
+    return request.param
 
 
 def random_scene(seed: int, grid: VoxelGrid = SMALL_GRID, free_fraction: float = 0.9):

@@ -22,10 +22,14 @@ from dego.classes import (
     protocol_classes,
 )
 from dego.data import (
+    Keyframe,
     Occ3DDataset,
     Occ3DLabels,
+    SceneOrigins,
     SyntheticFrame,
     SyntheticScene,
+    load_infos,
+    load_nuscenes_keyframes,
     load_occ3d_labels,
     save_occ3d_labels,
 )
@@ -37,6 +41,7 @@ from dego.deformation import (
     deformation_loss,
 )
 from dego.encoding import PositionalEncoding, positional_encoding
+from dego.evaluation import EvaluationReport, evaluate
 from dego.gaussians import (
     GaussianSet,
     build_covariances,
@@ -86,10 +91,12 @@ __all__ = [
     "DeformationLossWeights",
     "DeformationOutput",
     "DifferentiableSplatter",
+    "EvaluationReport",
     "FactorizedSpatioTemporalTeacher",
     "FactorizedTeacherFeatures",
     "GaussianSet",
     "GaussianVoxelizer",
+    "Keyframe",
     "Occ3DDataset",
     "Occ3DLabel",
     "Occ3DLabels",
@@ -98,6 +105,7 @@ __all__ = [
     "PositionalEncoding",
     "RayIoU",
     "RayIoUReport",
+    "SceneOrigins",
     "SplatOutput",
     "StudentProjector",
     "SyntheticFrame",
@@ -114,9 +122,12 @@ __all__ = [
     "confusion_matrix",
     "deformation_loss",
     "distillation_loss",
+    "evaluate",
     "generate_lidar_rays",
     "get_memory_limit",
     "lidar_origins",
+    "load_infos",
+    "load_nuscenes_keyframes",
     "load_occ3d_labels",
     "memory_limit",
     "normalize_quaternions",

@@ -1,11 +1,12 @@
-"""The ``dego`` command: ``dego demo`` and ``dego study``.
+"""The ``dego`` command: ``dego demo``, ``dego study`` and ``dego eval``.
 
 ``dego demo`` runs DeGO end to end on a synthetic clip: it renders the clip, fits
 canonical Gaussians from the pseudo labels only without deformation, with a rigid-only
 and with a decoupled deformation, voxelises them at every frame, scores them against
 each frame's ground truth (weak protocol, RayIoU, moving agents), prints one table and
 writes pictures. ``dego study`` repeats the fits over seeds and Gaussian budgets and
-reports means with confidence intervals.
+reports means with confidence intervals. ``dego eval`` scores a folder of Occ3D-nuScenes
+predictions (:mod:`dego.evaluation.command`).
 """
 
 from __future__ import annotations
@@ -41,12 +42,14 @@ from dego.demo import (
     row_name,
     score_clip,
 )
+from dego.evaluation import command as eval_command
 from dego.study import QUICK_STUDY, STUDY_VARIANTS, StudyConfig, run_study, write_study
 
 PROGRAM_DESCRIPTION = (
     "Run Deformable Gaussian Occupancy (DeGO) end to end on synthetic driving clips. "
     "'dego demo' fits static, rigid and decoupled Gaussians (and reference rows) to one clip "
-    "and scores them; 'dego study' repeats the fits over seeds and Gaussian budgets."
+    "and scores them; 'dego study' repeats the fits over seeds and Gaussian budgets; "
+    "'dego eval' scores a folder of Occ3D-nuScenes predictions."
 )
 DEMO_DESCRIPTION = (
     "Fit static, rigid and decoupled Gaussians to a synthetic clip from its pseudo labels, "
@@ -194,6 +197,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, default=Path("dego-study"), help="output folder (./dego-study)"
     )
     study.add_argument("--no-pictures", action="store_true", help="skip the plot")
+    eval_command.add_arguments(
+        commands.add_parser(
+            "eval",
+            help="score Occ3D-nuScenes predictions: mIoU, IoU, InsM/ScnM/HCM, RayIoU",
+            description=eval_command.DESCRIPTION,
+            epilog=eval_command.EPILOG,
+        )
+    )
     return parser
 
 
@@ -260,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "study":
         return study_main(args, parser)
+    if args.command == "eval":
+        return eval_command.run(args)
     budget = dict(BUDGETS["quick" if args.quick else "full"])
     for name in budget:
         if getattr(args, name) is not None:

@@ -42,15 +42,25 @@ identical results, and any length works, from 1e-20 to 1e20 in float32 and far b
 float64 (before, a direction much shorter than the float32 spacing of the origin's voxel
 coordinates gave NaN distances).
 
-Every ray advances one voxel per iteration of a bounded loop (at most 1001 iterations),
-over chunks of at most ``2^20`` rays; rays that finish drop out, and rays that cannot
-reach the grid are resolved up front.
+Two traversals give identical hits (the tests compare them bit for bit):
+
+- **torch** (CUDA, and CPU without numba): every ray advances one voxel per iteration of
+  a bounded loop (at most 1001 iterations), over chunks of at most ``2^20`` rays; rays
+  that finish drop out, and rays that cannot reach the grid are resolved up front.
+- **compiled CPU kernel** (``dego._march_numba``, with numba installed: the ``eval``
+  extra): one loop per ray, in parallel over rays on ``torch.get_num_threads()``
+  threads, each ray stopping at its hit; several times faster (docs/performance.md).
+  :data:`CPU_KERNEL` chooses.
+
+Several label grids on the same rays (RayIoU's prediction and ground truth) are traversed
+together: a ray stops once it has hit in every grid.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import os
+from collections.abc import Iterable, Iterator, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -58,6 +68,7 @@ import torch
 from jaxtyping import Bool, Float, Integer
 from torch import Tensor
 
+from dego import _march_numba
 from dego._policy import check_dtype, check_memory, compute_dtype, finite_check, run_checks
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
@@ -157,8 +168,11 @@ def _check_rays(origins: Tensor, directions: Tensor) -> None:
 def _voxel_rays(
     origins: Tensor, directions: Tensor, grid: VoxelGrid, sparseocc: bool
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Paired ``(N, 3)`` origins (metres) and non-zero directions -> float64 voxel-unit
-    starts, unit directions and metres per unit of ray parameter (module docstring)."""
+    """Origins (metres) and non-zero directions, ``(..., 3)`` and broadcastable against
+    each other (paired ``(N, 3)``, or ``(K, 1, 3)`` with ``(1, R, 3)`` for every direction
+    from every origin), -> float64 voxel-unit starts, unit directions and metres per
+    unit of ray parameter (module docstring), flattened to ``(N, 3)``, ``(N, 3)``,
+    ``(N,)``. Work that depends on only one of them is done at its own size."""
     device = origins.device
     o64 = origins.to(dtype=torch.float64)
     d64 = directions.to(device=device, dtype=torch.float64)
@@ -173,12 +187,15 @@ def _voxel_rays(
         end = (((d64 + o64) - lower) / size).float().double()
         delta = end - start
         length = torch.linalg.vector_norm(delta, dim=-1, keepdim=True)
-        # origins so far out that float32 swallows a one-metre step (where the reference
-        # gives NaN) keep their unrounded direction; they rarely reach the grid anyway
-        exact = d64 / size
-        exact = exact / torch.linalg.vector_norm(exact, dim=-1, keepdim=True)
         usable = (length > 0) & torch.isfinite(length)
-        unit = torch.where(usable, delta / torch.where(usable, length, 1.0), exact)
+        unit = delta / torch.where(usable, length, 1.0)
+        if not bool(usable.all()):
+            # origins so far out that float32 swallows a one-metre step (where the
+            # reference gives NaN) keep their unrounded direction; they rarely reach the
+            # grid anyway
+            exact = d64 / size
+            exact = exact / torch.linalg.vector_norm(exact, dim=-1, keepdim=True)
+            unit = torch.where(usable, unit, exact)
     else:
         lower = torch.tensor(grid.lower, dtype=torch.float64, device=device)
         size = torch.tensor(grid.voxel_size, dtype=torch.float64, device=device)
@@ -186,7 +203,13 @@ def _voxel_rays(
         scaled = d64 / d64.abs().amax(-1, keepdim=True) / size  # no overflow, no underflow
         unit = scaled / torch.linalg.vector_norm(scaled, dim=-1, keepdim=True)
     # metres per unit of ray parameter (voxel units along a unit voxel-space direction)
-    return start, unit, torch.linalg.vector_norm(unit * size, dim=-1)
+    metres = torch.linalg.vector_norm(unit * size, dim=-1)
+    shape = torch.broadcast_shapes(origins.shape, directions.shape)
+    return (
+        start.expand(shape).reshape(-1, 3),
+        unit.expand(shape).reshape(-1, 3),
+        metres.expand(shape[:-1]).reshape(-1),
+    )
 
 
 class _PaddedLabels(NamedTuple):
@@ -220,21 +243,25 @@ def _pad(labels: Tensor) -> _PaddedLabels:
 
 
 def _march(
-    grid: _PaddedLabels,
+    grids: Sequence[_PaddedLabels],  # G label grids of one shape, traversed together
     origin: Tensor,  # (N, 3) float64 voxel units
     unit: Tensor,  # (N, 3) float64 unit directions
     free_label: int,
     visited: Tensor | None = None,  # (X + 2) (Y + 2) (Z + 2) bool, marked in place
 ) -> tuple[Tensor, Tensor]:
-    """Amanatides-Woo traversal of every ray; first hits ``(distance in voxel units,
-    label)`` with the reference's placeholders. With ``visited`` (the padded grid,
-    flattened), every voxel a ray passes up to and including its hit is marked."""
+    """Amanatides-Woo traversal of every ray through every grid at once; ``(G, N)`` first
+    hits ``(distance in voxel units, label)`` with the reference's placeholders. A ray
+    stops when it has hit in every grid or leaves the grid. With ``visited`` (the padded
+    grid, flattened; one grid only), every voxel a ray passes up to and including its
+    hit is marked."""
     device = origin.device
-    n = origin.shape[0]
-    shape = grid.shape
+    n, count = origin.shape[0], len(grids)
+    first = grids[0]  # the grids share their geometry: in-grid tests use the first one
+    shape = first.shape
+    labels = torch.stack([grid.labels for grid in grids])  # (G, P)
     # never entered: the reference's placeholders, -1 voxel and the label of voxel (0, 0, 0)
-    distance = torch.full((n,), -1.0, dtype=torch.float64, device=device)
-    hit = grid.corner.expand(n).clone()
+    distance = torch.full((count, n), -1.0, dtype=torch.float64, device=device)
+    hit = torch.stack([grid.corner for grid in grids])[:, None].expand(count, n).clone()
 
     rays = _entry_possible(origin, unit, shape).nonzero().squeeze(1)
     origin, unit = origin[rays], unit[rays]
@@ -244,22 +271,22 @@ def _march(
     t_max = torch.where(unit != 0, (boundary - origin) / unit, math.inf)
     t_delta = torch.where(unit != 0, step.double() / unit, math.inf)
     was_inside = torch.zeros(rays.shape, dtype=torch.bool, device=device)
-    alive = torch.ones_like(was_inside)
-    last_t = torch.full(rays.shape, -1.0, dtype=torch.float64, device=device)
-    last_label = hit[rays]
+    alive = torch.ones((count, rays.shape[0]), dtype=torch.bool, device=device)
+    last_t = torch.full((count, rays.shape[0]), -1.0, dtype=torch.float64, device=device)
+    last_label = hit[:, rays]
     low, high = torch.full_like(shape, -1), shape
 
     def flush(done: Tensor) -> None:
-        distance[rays[done]] = last_t[done]
-        hit[rays[done]] = last_label[done]
+        distance[:, rays[done]] = last_t[:, done]
+        hit[:, rays[done]] = last_label[:, done]
 
     for iteration in range(MAX_STEPS + 1):
-        index = ((torch.maximum(torch.minimum(voxel, high), low) + 1) * grid.strides).sum(-1)
-        label = grid.labels[index]
-        inside = label != grid.outside if grid.inside is None else grid.inside[index]
+        index = ((torch.maximum(torch.minimum(voxel, high), low) + 1) * first.strides).sum(-1)
+        label = labels[:, index]  # (G, N)
+        inside = label[0] != first.outside if first.inside is None else first.inside[index]
         update = inside & alive
         if visited is not None:
-            visited[index[update]] = True
+            visited[index[update[0]]] = True
         # the axis crossed next (the voxel's exit), with the reference's tie-break
         tx, ty, tz = t_max.unbind(-1)
         axis = torch.where(tx < ty, torch.where(tx < tz, 0, 2), torch.where(ty < tz, 1, 2))
@@ -274,18 +301,74 @@ def _march(
             # outside on an axis and stepping away along it: can never (re-)enter the grid
             away = ((voxel < 0) & (step < 0)) | ((voxel >= shape) & (step > 0))
             alive = alive & ~away.any(-1)
-            live = int(alive.sum())
+            moving = alive.any(0)
+            live = int(moving.sum())
             if live == 0:
                 break
-            if live < 0.75 * alive.numel():
-                flush(~alive)
-                state = (rays, voxel, step, t_max, t_delta, was_inside, last_t, last_label)
-                rays, voxel, step, t_max, t_delta, was_inside, last_t, last_label = (
-                    t[alive] for t in state
+            if live < 0.75 * moving.numel():
+                flush(~moving)
+                state = (rays, voxel, step, t_max, t_delta, was_inside)
+                rays, voxel, step, t_max, t_delta, was_inside = (t[moving] for t in state)
+                alive, last_t, last_label = (
+                    alive[:, moving],
+                    last_t[:, moving],
+                    last_label[:, moving],
                 )
-                alive = alive[alive]
-    flush(torch.ones_like(alive))
+    flush(torch.ones_like(was_inside))
     return distance, hit
+
+
+def _march_compiled(
+    labels: np.ndarray,  # (G, X, Y, Z) integer, C-contiguous (see _kernel_labels)
+    origin: Tensor,  # (N, 3) float64 voxel units, on the CPU
+    unit: Tensor,  # (N, 3) float64 unit directions
+    free_label: int,
+) -> tuple[Tensor, Tensor]:
+    """:func:`_march` (without ``visited``) in the compiled CPU kernel; identical results."""
+    units, hits = _march_numba.first_hits(
+        labels,
+        origin.numpy(),
+        unit.numpy(),
+        labels[:, 0, 0, 0].astype(np.int64),
+        free_label,
+        MAX_STEPS,
+        torch.get_num_threads(),
+    )
+    return torch.from_numpy(units), torch.from_numpy(hits)
+
+
+CPU_KERNEL = os.environ.get("DEGO_CPU_KERNEL", "auto")
+"""How CPU casts are traversed: ``"auto"`` (the compiled kernel when numba is installed,
+else torch), ``"numba"`` (the compiled kernel; ``ImportError`` without numba) or
+``"torch"`` (the vectorised torch loop, as on CUDA). Both give identical hits. The
+environment variable ``DEGO_CPU_KERNEL`` sets the default."""
+
+
+def cpu_kernel() -> str:
+    """The traversal CPU casts use now: ``"numba"`` or ``"torch"`` (resolves ``"auto"``)."""
+    choice = CPU_KERNEL
+    if choice not in ("auto", "numba", "torch"):
+        raise ValueError(
+            f"dego.raycast.CPU_KERNEL: expected 'auto', 'numba' or 'torch', got {choice!r}"
+        )
+    if choice == "numba" and not _march_numba.available():
+        raise ImportError(
+            'dego.raycast.CPU_KERNEL is "numba" but numba is not installed '
+            '(pip install "dego-occupancy[eval]")'
+        )
+    if choice == "auto":
+        return "numba" if _march_numba.available() else "torch"
+    return choice
+
+
+def _kernel_labels(labels: Sequence[Tensor]) -> np.ndarray:
+    """The grids as one C-contiguous ``(G, X, Y, Z)`` array of the narrowest integer type
+    that holds every label (uint8 for label sets such as Occ3D's)."""
+    stacked = torch.stack(list(labels))
+    if stacked.dtype != torch.uint8:
+        low, high = (int(v) for v in torch.aminmax(stacked))
+        stacked = stacked.to(torch.uint8 if 0 <= low and high <= 255 else torch.int64)
+    return np.ascontiguousarray(stacked.numpy())
 
 
 def _cast_bytes(num_rays: int, grid: VoxelGrid, out_bytes_per_ray: int) -> int:
@@ -301,39 +384,64 @@ def _cast_sizes(num_rays: int, grid: VoxelGrid) -> str:
 
 @torch._dynamo.disable(recursive=True)  # see _cast_product
 def _traverse(
-    labels: Tensor,  # (X, Y, Z) int64
+    labels: Sequence[Tensor],  # G grids (X, Y, Z), any integer dtype, traversed together
     num_rays: int,
-    rays: Callable[[int, int], tuple[Tensor, Tensor]],  # (start, stop) -> origins, directions
+    chunks: Iterable[tuple[Tensor, Tensor]],  # broadcastable (origins, directions) blocks
     grid: VoxelGrid,
     free_label: int,
     sparseocc: bool,
     visited: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """First hits of ``num_rays`` rays, chunk by chunk: float32 (SparseOcc mode) or float64
-    metres and int64 labels."""
-    device = labels.device
-    padded = _pad(labels)
+    """``(G, num_rays)`` first hits of every ray in every grid, block by block (each block
+    is :func:`_voxel_rays`'s input; together they flatten to the ``num_rays`` rays in
+    order): float32 (SparseOcc mode) or float64 metres and int64 labels."""
+    device = labels[0].device
+    compiled = visited is None and device.type == "cpu" and cpu_kernel() == "numba"
+    label_array = _kernel_labels(labels) if compiled else None
+    padded = [] if compiled else [_pad(grid_labels.long()) for grid_labels in labels]
+    shape = (len(labels), num_rays)
     distance = torch.empty(
-        num_rays, dtype=torch.float32 if sparseocc else torch.float64, device=device
+        shape, dtype=torch.float32 if sparseocc else torch.float64, device=device
     )
-    hit = torch.empty(num_rays, dtype=torch.int64, device=device)
-    for begin in range(0, num_rays, CHUNK_RAYS):
-        stop = min(begin + CHUNK_RAYS, num_rays)
-        origins, directions = rays(begin, stop)
+    hit = torch.empty(shape, dtype=torch.int64, device=device)
+    begin = 0
+    for origins, directions in chunks:
         start, unit, metres = _voxel_rays(origins, directions, grid, sparseocc)
-        units, hit[begin:stop] = _march(padded, start, unit, free_label, visited)
-        if sparseocc:  # float32 voxel-unit distances scaled in float32, as the reference does
-            distance[begin:stop] = units.float() * metres.float()
+        stop = begin + start.shape[0]
+        if label_array is not None:
+            units, hit[:, begin:stop] = _march_compiled(label_array, start, unit, free_label)
         else:
-            distance[begin:stop] = units * metres
+            units, hit[:, begin:stop] = _march(padded, start, unit, free_label, visited)
+        if sparseocc:  # float32 voxel-unit distances scaled in float32, as the reference does
+            distance[:, begin:stop] = units.float() * metres.float()
+        else:
+            distance[:, begin:stop] = units * metres
+        begin = stop
     return distance, hit
+
+
+def _product_chunks(origins: Tensor, directions: Tensor) -> Iterator[tuple[Tensor, Tensor]]:
+    """Every direction from every origin, origin-major, in blocks of at most about
+    :data:`CHUNK_RAYS` rays: whole origins ``(k, 1, 3)`` x ``(1, R, 3)`` while R fits,
+    else ``(n, 3)`` pairs gathered from the flat ray index."""
+    k, r = origins.shape[0], directions.shape[0]
+    if k == 0 or r == 0:
+        return
+    if r <= CHUNK_RAYS:
+        per = CHUNK_RAYS // r
+        for first in range(0, k, per):
+            yield origins[first : first + per, None], directions[None]
+        return
+    for begin in range(0, k * r, CHUNK_RAYS):
+        index = torch.arange(begin, min(begin + CHUNK_RAYS, k * r), device=origins.device)
+        yield origins[index // r], directions[index % r]
 
 
 # Data-dependent by nature (rays retire as they hit): run eagerly under torch.compile, as
 # one graph break, rather than letting dynamo split it at every compaction.
 @torch._dynamo.disable(recursive=True)
 def _cast_product(
-    labels: Tensor,
+    labels: Sequence[Tensor],
     origins: Tensor,
     directions: Tensor,
     grid: VoxelGrid,
@@ -341,22 +449,19 @@ def _cast_product(
     what: str,
     extra_bytes_per_ray: int = 0,
 ) -> tuple[Tensor, Tensor]:
-    """:func:`cast_rays` after the checks of its callers: every direction from every
-    origin, origin-major; ``what`` names the caller in the memory guard."""
+    """:func:`cast_rays` through each of the G grids ``labels`` (integers, on one device)
+    after the checks of its callers: every direction from every origin, origin-major,
+    one traversal for all grids; ``(G, K R)`` distances and labels. ``what`` names the
+    caller in the memory guard."""
     out_dtype, sparseocc = _ray_mode(origins, directions)
     _check_rays(origins, directions)
-    k, r = origins.shape[0], directions.shape[0]
-    n = k * r
-    out_bytes = (4 if sparseocc else 8) + 8 + extra_bytes_per_ray
+    n = origins.shape[0] * directions.shape[0]
+    out_bytes = ((4 if sparseocc else 8) + 8) * len(labels) + extra_bytes_per_ray
     check_memory(what, _cast_bytes(n, grid, out_bytes), _cast_sizes(n, grid))
-    device = labels.device
+    device = labels[0].device
     origins, directions = origins.to(device), directions.to(device)
-
-    def rays(begin: int, stop: int) -> tuple[Tensor, Tensor]:
-        index = torch.arange(begin, stop, device=device)
-        return origins[index // r], directions[index % r]
-
-    distance, hit = _traverse(labels, n, rays, grid, free_label, sparseocc)
+    chunks = _product_chunks(origins, directions)
+    distance, hit = _traverse(labels, n, chunks, grid, free_label, sparseocc)
     return distance.to(out_dtype), hit
 
 
@@ -400,7 +505,8 @@ def cast_rays(
             :func:`dego.set_memory_limit`'s limit (checked before allocating).
     """
     labels = _label_grid("labels", labels, grid)
-    return _cast_product(labels, origins, directions, grid, free_label, "cast_rays")
+    distance, hit = _cast_product([labels], origins, directions, grid, free_label, "cast_rays")
+    return distance[0], hit[0]
 
 
 @typechecked
@@ -440,12 +546,20 @@ def observed_voxels(
     visited = torch.zeros((x + 2) * (y + 2) * (z + 2), dtype=torch.bool, device=device)
     if n:
         origins, directions = origins.to(device), directions.to(device)
-
-        def rays(begin: int, stop: int) -> tuple[Tensor, Tensor]:
-            return origins[begin:stop], directions[begin:stop]
-
-        _traverse(labels, n, rays, grid, free_label, sparseocc, visited)
+        chunks = (
+            (origins[begin : begin + CHUNK_RAYS], directions[begin : begin + CHUNK_RAYS])
+            for begin in range(0, n, CHUNK_RAYS)
+        )
+        _traverse([labels], n, chunks, grid, free_label, sparseocc, visited)
     return visited.view(x + 2, y + 2, z + 2)[1:-1, 1:-1, 1:-1].clone()
 
 
-__all__ = ["CHUNK_RAYS", "MAX_STEPS", "cast_rays", "generate_lidar_rays", "observed_voxels"]
+__all__ = [
+    "CHUNK_RAYS",
+    "CPU_KERNEL",
+    "MAX_STEPS",
+    "cast_rays",
+    "cpu_kernel",
+    "generate_lidar_rays",
+    "observed_voxels",
+]

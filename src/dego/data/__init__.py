@@ -1,6 +1,11 @@
-"""Data: procedural driving scenes (:mod:`dego.data.synthetic`) and Occ3D-nuScenes
-ground-truth I/O (:mod:`dego.data.occ3d`)."""
+"""Data: procedural driving scenes (:mod:`dego.data.synthetic`), Occ3D-nuScenes
+ground-truth I/O (:mod:`dego.data.occ3d`), nuScenes keyframe poses from infos pickles
+(:mod:`dego.data.infos`, through :mod:`dego.data.safe_pickle`) or the JSON tables
+(:mod:`dego.data.nuscenes`), and RayIoU ray origins (:mod:`dego.data.origins`)."""
 
+from dego.data.infos import load_infos
+from dego.data.keyframes import Keyframe
+from dego.data.nuscenes import load_nuscenes_keyframes
 from dego.data.occ3d import (
     LABELS_FILENAME,
     OCC3D_SHAPE,
@@ -10,7 +15,9 @@ from dego.data.occ3d import (
     load_occ3d_labels,
     save_occ3d_labels,
 )
+from dego.data.origins import SceneOrigins
 from dego.data.primitives import Primitives
+from dego.data.safe_pickle import UnsafePickleError, load_pickle
 from dego.data.synthetic import (
     CAMERAS,
     LIDAR_ORIGIN,
@@ -24,13 +31,19 @@ __all__ = [
     "LABELS_FILENAME",
     "LIDAR_ORIGIN",
     "OCC3D_SHAPE",
+    "Keyframe",
     "Occ3DDataset",
     "Occ3DLabels",
     "Occ3DSample",
     "Primitives",
+    "SceneOrigins",
     "SyntheticAgent",
     "SyntheticFrame",
     "SyntheticScene",
+    "UnsafePickleError",
+    "load_infos",
+    "load_nuscenes_keyframes",
     "load_occ3d_labels",
+    "load_pickle",
     "save_occ3d_labels",
 ]

@@ -75,6 +75,10 @@ def as_mask_tensor(mask: Tensor | np.ndarray, shape: torch.Size, device: torch.d
 def _check_range(name: str, labels: Tensor, num_classes: int, allowed: int | None) -> None:
     if labels.numel() == 0:
         return
+    if not _is_compiling():  # the usual case in one pass (and the one host sync)
+        low, high = (int(v) for v in torch.aminmax(labels))
+        if low >= 0 and high < num_classes:
+            return
     bad = (labels < 0) | (labels >= num_classes)
     if allowed is not None:
         bad &= labels != allowed

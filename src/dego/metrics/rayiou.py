@@ -24,7 +24,7 @@ from torch import Tensor
 
 from dego import _serialization
 from dego._policy import check_finite, check_memory, run_checks
-from dego._typing import typechecked
+from dego._typing import _is_compiling, typechecked
 from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.gaussians import _rotation_matrices
 from dego.grid import VoxelGrid
@@ -266,9 +266,12 @@ class _RayIoUSpec:
             raise ValueError(
                 f"{name}: expected shape {self.grid.shape} (the grid), got {tuple(labels.shape)}"
             )
-        labels = labels.long()
         if labels.numel():
             c = self.num_classes
+            if not _is_compiling():  # the usual case in one pass (and the one host sync)
+                low, high = (int(v) for v in torch.aminmax(labels))
+                if 0 <= low and high < c:
+                    return labels
 
             def error() -> Exception:
                 low, high = (int(v) for v in torch.aminmax(labels))
@@ -322,8 +325,10 @@ class _RayIoUSpec:
         origins, rays = origins.to(device, torch.float64), rays.to(device, torch.float32)
         grid, free = self.grid, self.free_label
         what = "RayIoU.update"
-        gt_distance, gt_label = _cast_product(gt, origins, rays, grid, free, what)
-        pred_distance, pred_label = _cast_product(pred, origins, rays, grid, free, what)
+        # one traversal for both grids: they share every ray
+        (gt_distance, pred_distance), (gt_label, pred_label) = _cast_product(
+            [gt, pred], origins, rays, grid, free, what
+        )
         # Masked counts rather than boolean indexing: no data-dependent shape (compiles).
         scored = gt_label != self.free_label
         error = (pred_distance - gt_distance).abs()

@@ -1,0 +1,169 @@
+"""`dego eval` throughput: samples per second and peak memory, before vs now, in one run.
+
+Workload: a synthetic Occ3D-nuScenes release (``occ3d_tree.py``: street scenes of 40
+keyframes, 200 x 200 x 16 ground truth in the release layout, SparseOcc-style ``pred``
+predictions, an mmdet3d infos file), scored the way ``dego eval --infos`` scores the
+real one: read and validate both files, mIoU under the ``occ3d`` and ``weak`` protocols,
+RayIoU from up to 8 origins per sample (SparseOcc's EgoPoseDataset) x 14,040 rays
+through prediction and ground truth.
+
+Rows (each in its own process, so peak memory is that run's high-water mark; every row
+is warmed up on one sample first, which also fills numba's cache):
+
+- ``before``: the scoring loop as it was (torch traversal, prediction and ground truth
+  cast separately), on the first ``--before-samples`` samples;
+- ``torch``: the torch traversal with one traversal for both grids (what CUDA and CPUs
+  without numba run), same samples;
+- ``kernel``: the compiled CPU kernel (numba), every sample, 1 process;
+- ``kernel --workers N``: the same over N processes (torch.distributed, gloo).
+
+Every row's counts over the common samples must be identical (checked).
+
+    python benchmarks/bench_eval.py [--scenes 6] [--frames 40] [--before-samples 16]
+                                    [--workers 2] [--data DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+VALIDATION_SAMPLES = 6019  # Occ3D-nuScenes val
+
+
+def _row(args: argparse.Namespace) -> None:
+    """One measured row (runs in a child process); prints a JSON line."""
+    import torch
+
+    import dego
+    from dego import raycast
+    from dego.metrics import rayiou
+
+    raycast.CPU_KERNEL = "torch" if args.row in ("before", "torch") else "numba"
+    if args.row == "before":  # one cast per grid, as before the shared traversal
+        shared = rayiou._cast_product
+
+        def separately(labels, *rest, **kwargs):
+            parts = [shared([grid], *rest, **kwargs) for grid in labels]
+            return tuple(torch.cat([p[i] for p in parts]) for i in range(2))
+
+        rayiou._cast_product = separately
+    root = Path(args.data)
+    infos = root / f"infos_{args.limit}.pkl" if args.limit else root / "nuscenes_infos_val.pkl"
+    kwargs = {"gt": root / "gt", "pred": root / "pred", "workers": args.workers}
+    dego.evaluate(**kwargs, infos=root / "infos_1.pkl")  # warm-up (and numba's cache)
+    start = time.perf_counter()
+    report = dego.evaluate(**kwargs, infos=infos)
+    seconds = time.perf_counter() - start
+    peak_kib = max(
+        resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+        resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss,
+    )
+    counts = {
+        f"{metric}.{name}": np.asarray(value).tolist()
+        for metric, parts in report.counts.items()
+        for name, value in parts.items()
+    }
+    print(
+        json.dumps(
+            {
+                "samples": report.samples_scored,
+                "seconds": seconds,
+                "peak_mib": peak_kib / 1024,
+                "rayiou": report.rayiou.rayiou if report.rayiou else None,
+                "rays_cast": report.rays_cast,
+                "counts": counts,
+            }
+        )
+    )
+
+
+def _subset_infos(root: Path, count: int) -> None:
+    with (root / "nuscenes_infos_val.pkl").open("rb") as file:
+        infos = pickle.load(file)  # our own file
+    subset = {"infos": infos["infos"][:count], "metadata": infos["metadata"]}
+    with (root / f"infos_{count}.pkl").open("wb") as file:
+        pickle.dump(subset, file, protocol=4)
+
+
+def _run_row(script: Path, data: Path, row: str, limit: int, workers: int) -> dict:
+    command = [sys.executable, str(script), "--row", row, "--data", str(data)]
+    command += ["--limit", str(limit), "--workers", str(workers)]
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"row {row} failed:\n{done.stderr}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", type=int, default=6)
+    parser.add_argument("--frames", type=int, default=40, help="keyframes per scene")
+    parser.add_argument("--before-samples", type=int, default=16)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--data", type=Path, help="build (or reuse) the data set here")
+    parser.add_argument("--row", help=argparse.SUPPRESS)
+    parser.add_argument("--limit", type=int, default=0, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.row:
+        _row(args)
+        return
+
+    import torch
+
+    from occ3d_tree import write_tree
+
+    with tempfile.TemporaryDirectory(prefix="dego-bench-eval-") as scratch:
+        data = args.data or Path(scratch)
+        total = args.scenes * args.frames
+        if not (data / "nuscenes_infos_val.pkl").is_file():
+            start = time.perf_counter()
+            write_tree(data, args.scenes, args.frames)
+            print(f"wrote {total} samples in {time.perf_counter() - start:.0f} s to {data}")
+        for count in (1, args.before_samples):
+            _subset_infos(data, count)
+        script = Path(__file__).resolve()
+        print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, CPU")
+        rows = {
+            "before (torch, pred and gt cast separately)": ("before", args.before_samples, 1),
+            "torch, one traversal for pred and gt": ("torch", args.before_samples, 1),
+            "kernel, same samples": ("kernel", args.before_samples, 1),
+            "kernel": ("kernel", 0, 1),
+            f"kernel, --workers {args.workers}": ("kernel", 0, args.workers),
+        }
+        results = {name: _run_row(script, data, *spec) for name, spec in rows.items()}
+        subset = [r for r, spec in zip(results.values(), rows.values(), strict=True) if spec[1]]
+        full = [r for r, spec in zip(results.values(), rows.values(), strict=True) if not spec[1]]
+        same = all(r["counts"] == subset[0]["counts"] for r in subset) and all(
+            r["counts"] == full[0]["counts"] for r in full
+        )
+        before = next(iter(results.values()))
+        base = before["seconds"] / before["samples"]
+        print(
+            f"\n| run | samples | s / sample | samples / s | {VALIDATION_SAMPLES} samples "
+            "| peak RSS | vs before |\n|---|---|---|---|---|---|---|"
+        )
+        for name, r in results.items():
+            per = r["seconds"] / r["samples"]
+            print(
+                f"| {name} | {r['samples']} | {per:.3f} | {1 / per:.1f} | "
+                f"{per * VALIDATION_SAMPLES / 60:.1f} min | {r['peak_mib']:.0f} MiB | "
+                f"{base / per:.1f}x |"
+            )
+        print(
+            f"\nidentical counts in every row: {same}; RayIoU over all {full[0]['samples']} "
+            f"samples {full[0]['rayiou']:.4f}, {full[0]['rays_cast']:,} rays cast per grid"
+        )
+
+
+if __name__ == "__main__":
+    main()
