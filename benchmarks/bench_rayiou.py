@@ -7,7 +7,9 @@ voxels), 8 origins x 14,040 rays, cast through pred and gt and scored. The scala
 reference (``tests/ray_reference.py``, one Python loop per ray, the rules written out
 plainly) is timed on a subset of rays and extrapolated to the full sample.
 
-It also times ``cast_rays`` of the gt grid in its two precision modes, SparseOcc mode
+On a CPU it times RayIoU with both traversals, the compiled kernel (numba, when
+installed) and the torch loop. It also times ``cast_rays`` of the gt grid in its two
+precision modes, SparseOcc mode
 (float32 directions: float32 voxel coordinates, float64 traversal, float32 distances;
 what RayIoU uses) and float64 mode (float64 origins and directions: no float32 rounding,
 float64 distances), and prints how far their hits differ.
@@ -23,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from dego import RayIoU, VoxelGrid, cast_rays, generate_lidar_rays
+from dego import RayIoU, VoxelGrid, cast_rays, generate_lidar_rays, raycast
 
 from harness import benchmark_parser, median_seconds, peak_memory_mib
 
@@ -82,15 +84,28 @@ def main() -> None:
         return metric.compute()
 
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}")
-    seconds = median_seconds(sample, device, repeats=args.repeats)
-    peak = peak_memory_mib(sample, device)
-    report = sample()
     total_rays = 2 * origins.shape[0] * rays.shape[0]
-    print(
-        f"RayIoU of one sample (8 origins x {rays.shape[0]} rays, pred + gt = {total_rays} "
-        f"casts): {seconds:.3f} s, peak {peak:.1f} MiB; RayIoU {report.rayiou:.4f} "
-        f"(@1 {report.at[0]:.4f}, @2 {report.at[1]:.4f}, @4 {report.at[2]:.4f})"
-    )
+    # on CPU: the compiled kernel (when numba is installed) and the torch traversal
+    kernels = [raycast.cpu_kernel()] if device.type == "cpu" else ["torch (CUDA)"]
+    if device.type == "cpu" and kernels[0] == "numba":
+        kernels.append("torch")
+    for kernel in kernels:
+        if device.type == "cpu":
+            raycast.CPU_KERNEL = kernel
+        seconds = median_seconds(sample, device, repeats=args.repeats)
+        peak = peak_memory_mib(sample, device)
+        report = sample()
+        print(
+            f"RayIoU of one sample (8 origins x {rays.shape[0]} rays, pred + gt = {total_rays} "
+            f"casts), traversal {kernel}: {seconds:.3f} s, peak {peak:.1f} MiB; RayIoU "
+            f"{report.rayiou:.4f} (@1 {report.at[0]:.4f}, @2 {report.at[1]:.4f}, "
+            f"@4 {report.at[2]:.4f})"
+        )
+        if kernel == kernels[0]:
+            fastest = seconds
+    if device.type == "cpu":
+        raycast.CPU_KERNEL = kernels[0]
+    seconds = fastest
     origins64 = origins.double()
     rays = rays.to(device)
     modes = {
@@ -128,7 +143,8 @@ def main() -> None:
     )
     print(
         f"scalar per-ray traversal, extrapolated from {subset.shape[0]} rays: {scalar:.1f} s "
-        f"-> vectorised is {scalar / seconds:.0f}x faster; identical hits on the subset: {same}"
+        f"-> RayIoU.update ({kernels[0]}) is {scalar / seconds:.0f}x faster; identical hits on "
+        f"the subset: {same}"
     )
 
 

@@ -12,6 +12,12 @@ from hypothesis import HealthCheck, settings
 
 from tests._repo import ROOT, SOURCE_TREE_REASON
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Under pytest-xdist every worker (and every process a test starts) computes on one
+    # thread: two workers with a torch pool each on two cores spin against each other.
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
+
 settings.register_profile(
     "default",
     deadline=None,

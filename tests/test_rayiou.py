@@ -373,6 +373,10 @@ def test_report_dict_and_table() -> None:
     assert not any(k.endswith("/free") for k in as_dict)
     text = report.table()
     assert "car" in text and "MEAN" in text and "RayIoU" in text and str(report) == text
+    assert f"RayIoU {report.rayiou:.3f} (mean over 17 classes)" in text
+    percent = report.table(percent=True)
+    assert f"RayIoU {report.rayiou * 100:.2f} (mean over 17 classes)" in percent
+    assert f"{report.at[0] * 100:.2f}" in percent.splitlines()[-2]
     assert report.rayiou == pytest.approx(float(np.mean(report.at)))
 
 

@@ -60,8 +60,9 @@ class EvaluationReport:
             samples without a prediction (scored as all free, or skipped).
         failed: samples that could not be read or validated (the run is incomplete).
         world_size: processes that shared the samples; ``seconds``: wall time;
-        version: the dego version; traversal: how the rays were cast (``"numba"``, the
-        compiled CPU kernel, or ``"torch"``; identical hits either way).
+        version: the dego version.
+        traversal: how the rays were cast: ``"numba"`` (the compiled CPU kernel) or
+            ``"torch"``, with identical hits.
     """
 
     protocols: Mapping[str, OccupancyReport]
@@ -185,24 +186,6 @@ class EvaluationReport:
             f"scores are over the {self.samples_scored} samples that were read"
         )
 
-    def _rayiou_rows(self) -> list[str]:
-        ray = self.rayiou
-        assert ray is not None
-        head = " | ".join(f"{'@' + format(t, 'g') + ' m':>7}" for t in ray.thresholds)
-        lines = [
-            f"| {'class':<22} | {head} |",
-            f"|{'-' * 24}|" + "|".join("-" * 9 for _ in ray.thresholds) + "|",
-        ]
-        for c in ray.class_ids:
-            cells = " | ".join(
-                f"{_percent(float(ray.per_class[i, c])):>7}" for i in range(len(ray.thresholds))
-            )
-            lines.append(f"| {ray.class_names[c]:<22} | {cells} |")
-        means = " | ".join(f"{_percent(v):>7}" for v in ray.at)
-        lines.append(f"| {'RayIoU@t (mean)':<22} | {means} |")
-        lines.append(f"RayIoU {_percent(ray.rayiou)} (mean over {len(ray.class_ids)} classes)")
-        return lines
-
     def tables(self) -> str:
         """The text shown on stdout: every score in percent with two decimals."""
         lines = []
@@ -214,7 +197,7 @@ class EvaluationReport:
             lines += ["", f"== voxel IoU, {name} protocol (percent) ==", report.table()]
         if self.rayiou is not None:
             lines += ["", f"== RayIoU (percent), origins {self.origin_source} =="]
-            lines += self._rayiou_rows()
+            lines += [self.rayiou.table(percent=True)]
         elif self.origin_source is not None:
             lines += ["", "RayIoU: no ray was scored"]
         if not self.protocols:

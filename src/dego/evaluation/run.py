@@ -512,7 +512,8 @@ def evaluate(
         classes: the classes averaged into mIoU and RayIoU instead of the protocol's default.
         infos: an mmdet3d ``nuscenes_infos_val.pkl``: its tokens, in file order, are the
             samples scored, and its poses give the origins (preferred source).
-        nuscenes, version: a nuScenes root and version whose JSON tables give the poses.
+        nuscenes: a nuScenes root whose JSON tables (of ``version``) give the poses.
+        version: the nuScenes version folder under ``nuscenes`` (``v1.0-trainval``).
         origins: a folder of ``<token>.npy`` ``(K, 3)`` origins in the ego frame.
         missing: a sample without a prediction is an ``"error"`` (checked up front),
             scored as all ``"free"``, or ``"skip"``-ped.

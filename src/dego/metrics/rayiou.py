@@ -127,8 +127,13 @@ class RayIoUReport(_serialization.DictForm):
                 out[f"rayiou@{t:g}/{self.class_names[c]}"] = float(self.per_class[i, c])
         return out
 
-    def table(self) -> str:
-        """A text table of per-class IoU at every threshold and the means (fractions, .3)."""
+    def table(self, percent: bool = False) -> str:
+        """A text table of per-class IoU at every threshold and the means: fractions with
+        3 decimals (SparseOcc's printout), or percent with 2 (``percent=True``)."""
+
+        def fmt(value: float) -> str:
+            return _fmt(value * 100, ".2f") if percent else _fmt(value)
+
         head = " | ".join(f"{'IoU@' + format(t, 'g'):>7}" for t in self.thresholds)
         lines = [
             f"| {'class':<22} | {head} |",
@@ -136,20 +141,20 @@ class RayIoUReport(_serialization.DictForm):
         ]
         for c in self.class_ids:
             values = " | ".join(
-                _fmt(float(self.per_class[i, c])) for i in range(len(self.thresholds))
+                fmt(float(self.per_class[i, c])) for i in range(len(self.thresholds))
             )
             lines.append(f"| {self.class_names[c]:<22} | {values} |")
-        means = " | ".join(_fmt(v) for v in self.at)
+        means = " | ".join(fmt(v) for v in self.at)
         lines.append(f"| {'MEAN':<22} | {means} |")
-        lines.append(f"RayIoU {_fmt(self.rayiou).strip()}")
+        lines.append(f"RayIoU {fmt(self.rayiou).strip()} (mean over {len(self.class_ids)} classes)")
         return "\n".join(lines)
 
     def __str__(self) -> str:
         return self.table()
 
 
-def _fmt(value: float) -> str:
-    return f"{'-':>7}" if math.isnan(value) else f"{value:>7.3f}"
+def _fmt(value: float, spec: str = ".3f") -> str:
+    return f"{'-':>7}" if math.isnan(value) else f"{value:>7{spec}}"
 
 
 def _masked_bincount(labels: Tensor, mask: Tensor, num_classes: int) -> Tensor:
