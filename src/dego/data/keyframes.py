@@ -17,7 +17,7 @@ import torch
 from jaxtyping import Float64
 from torch import Tensor
 
-from dego.gaussians import _rotation_matrices
+from dego.metrics.rayiou import _pose_matrix
 
 __all__ = ["Keyframe"]
 
@@ -101,7 +101,4 @@ def _pose_matrices(translations: np.ndarray, rotations: np.ndarray) -> Tensor:
     The quaternions are normalised first (as pyquaternion's ``rotation_matrix``).
     """
     rotations = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
-    matrices = torch.eye(4, dtype=torch.float64).repeat(translations.shape[0], 1, 1)
-    matrices[:, :3, :3] = _rotation_matrices(torch.from_numpy(rotations))
-    matrices[:, :3, 3] = torch.from_numpy(translations)
-    return matrices
+    return _pose_matrix(torch.from_numpy(np.concatenate([translations, rotations], axis=-1)))

@@ -153,10 +153,11 @@ def prepare(
     origins: PathLike | None = None,
     missing: str = "error",
     device: str = "cpu",
-) -> tuple[Plan, tuple[Any, ...] | None]:
+) -> tuple[Plan, OriginsFn | None]:
     """Select the samples and check predictions and origins for all of them up front.
 
-    Returns the plan and the keyframes read (for an ``infos`` / ``nuscenes`` source).
+    Returns the plan and the origins of every sample (``None`` without RayIoU), opened
+    once here: this process scores with them, spawned workers open their own.
     Raises :class:`EvaluationSetupError` naming the option, file or tokens at fault.
     """
     protocols, class_ids = _protocols(protocol), _classes(classes)
@@ -225,9 +226,10 @@ def prepare(
         ignored_sources=ignored if rayiou else (),
         device=device,
     )
+    origins_fn = None
     if rayiou:  # every origin exists (files) or every token is a keyframe (poses)
-        open_origins(source, scene_of, [s.token for s in samples], keyframes)
-    return plan, keyframes
+        origins_fn = open_origins(source, scene_of, [s.token for s in samples], keyframes)
+    return plan, origins_fn
 
 
 # ----------------------------------------------------------------------------------------
@@ -330,15 +332,13 @@ def score_shard(
     world_size: int = 1,
     *,
     on_sample: Callable[[], None] | None = None,
-    keyframes: tuple[Any, ...] | None = None,
+    origins_fn: OriginsFn | None = None,
 ) -> Tally:
-    """Score samples ``rank::world_size`` of the plan, one at a time (constant memory)."""
+    """Score samples ``rank::world_size`` of the plan, one at a time (constant memory);
+    ``origins_fn``: the samples' origins when already open (:func:`prepare`)."""
     shard = plan.samples[rank::world_size]
-    origins_fn = None
-    if plan.rayiou and plan.source is not None:
-        origins_fn = open_origins(
-            plan.source, dict(plan.scene_of), [s.token for s in shard], keyframes
-        )
+    if origins_fn is None and plan.rayiou and plan.source is not None:
+        origins_fn = open_origins(plan.source, dict(plan.scene_of), [s.token for s in shard])
     tally = Tally(plan)
     for sample in shard:
         tally.score(sample, origins_fn)
@@ -472,12 +472,12 @@ def _run_workers(plan: Plan, workers: int, progress: Progress) -> dict[str, Any]
     return result
 
 
-def _run_here(plan: Plan, keyframes: tuple[Any, ...] | None, progress: Progress) -> dict[str, Any]:
+def _run_here(plan: Plan, origins_fn: OriginsFn | None, progress: Progress) -> dict[str, Any]:
     """This process's shard (all samples outside torch.distributed), reduced over ranks."""
     rank, world = 0, 1
     if dist.is_available() and dist.is_initialized():
         rank, world = dist.get_rank(), dist.get_world_size()
-    tally = score_shard(plan, rank, world, on_sample=progress.update, keyframes=keyframes)
+    tally = score_shard(plan, rank, world, on_sample=progress.update, origins_fn=origins_fn)
     tally.sync()
     return tally.state()
 
@@ -533,7 +533,7 @@ def evaluate(
     """
     workers = check_int("workers", workers, 1)
     start = time.perf_counter()
-    plan, keyframes = prepare(
+    plan, origins_fn = prepare(
         gt,
         pred,
         protocol=protocol,
@@ -567,7 +567,7 @@ def evaluate(
             if workers > 1:
                 state = _run_workers(plan, workers, bar)
             else:
-                state = _run_here(plan, keyframes, bar)
+                state = _run_here(plan, origins_fn, bar)
     finally:
         if created_group:
             dist.destroy_process_group()

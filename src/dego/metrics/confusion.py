@@ -72,13 +72,19 @@ def as_mask_tensor(mask: Tensor | np.ndarray, shape: torch.Size, device: torch.d
     return mask.to(device)
 
 
+def labels_in_range(labels: Tensor, num_classes: int) -> bool:
+    """Whether every label lies in ``0..num_classes-1``, known in one pass (and the one
+    host sync) in eager mode; ``False`` under torch.compile, where the caller's in-graph
+    check decides."""
+    if _is_compiling():
+        return False
+    low, high = (int(v) for v in torch.aminmax(labels))
+    return low >= 0 and high < num_classes
+
+
 def _check_range(name: str, labels: Tensor, num_classes: int, allowed: int | None) -> None:
-    if labels.numel() == 0:
+    if labels.numel() == 0 or labels_in_range(labels, num_classes):
         return
-    if not _is_compiling():  # the usual case in one pass (and the one host sync)
-        low, high = (int(v) for v in torch.aminmax(labels))
-        if low >= 0 and high < num_classes:
-            return
     bad = (labels < 0) | (labels >= num_classes)
     if allowed is not None:
         bad &= labels != allowed

@@ -24,11 +24,11 @@ from torch import Tensor
 
 from dego import _serialization
 from dego._policy import check_finite, check_memory, run_checks
-from dego._typing import _is_compiling, typechecked
+from dego._typing import typechecked
 from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.gaussians import _rotation_matrices
 from dego.grid import VoxelGrid
-from dego.metrics.confusion import as_label_tensor
+from dego.metrics.confusion import as_label_tensor, labels_in_range
 from dego.metrics.counts import CountingMetric, class_names
 from dego.raycast import _cast_bytes, _cast_product, _cast_sizes, generate_lidar_rays
 
@@ -271,12 +271,8 @@ class _RayIoUSpec:
             raise ValueError(
                 f"{name}: expected shape {self.grid.shape} (the grid), got {tuple(labels.shape)}"
             )
-        if labels.numel():
+        if labels.numel() and not labels_in_range(labels, self.num_classes):
             c = self.num_classes
-            if not _is_compiling():  # the usual case in one pass (and the one host sync)
-                low, high = (int(v) for v in torch.aminmax(labels))
-                if 0 <= low and high < c:
-                    return labels
 
             def error() -> Exception:
                 low, high = (int(v) for v in torch.aminmax(labels))
