@@ -132,7 +132,7 @@ def op_functions(inputs: StepInputs, modules: StepModules) -> dict[str, Callable
     student = (teacher + 0.1 * torch.randn_like(teacher)).requires_grad_(True)
 
     def occupancy_update() -> Tensor:
-        modules.occupancy.update(pred, inputs.labels)
+        modules.occupancy.update(pred, inputs.labels, mask=None)
         return modules.occupancy.confusion.sum()
 
     def rayiou_update() -> Tensor:
@@ -208,7 +208,7 @@ def training_step(inputs: StepInputs, modules: StepModules) -> tuple[Tensor, dic
     adapted = adapter(last, inputs)
     distance, hit = cast_rays(inputs.labels, torch.zeros(1, 3), inputs.directions, GRID)
     pred = voxels.features.argmax(-1)[0] % 18
-    modules.occupancy.update(pred, inputs.labels)
+    modules.occupancy.update(pred, inputs.labels, mask=None)
     modules.rayiou.update(pred, inputs.labels, torch.zeros(1, 3))
     loss = (
         distill

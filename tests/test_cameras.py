@@ -406,3 +406,54 @@ def test_apply_image_aug_rejects_bad_layouts(
 def test_wrong_shapes_and_types_raise(call) -> None:
     with pytest.raises((TypeError, ValueError)):
         call()
+
+
+# -- camera arguments of the renderers ----------------------------------------------------
+@pytest.mark.parametrize("keyword", [False, True])
+def test_missing_camera_axes_name_the_argument_and_its_shape(keyword: bool) -> None:
+    """A camera argument without its (B, V) axes names itself, its expected shape and how
+    to add the axes (issue 26: an ``intrinsics`` error advised ``world_to_cam[None]``)."""
+    from dego import DifferentiableSplatter, splat
+    from tests.strategies import make_gaussian_set
+
+    gaussians = make_gaussian_set((1,), 4)
+    world_to_cam = torch.eye(4, dtype=torch.float64).expand(1, 1, 4, 4)
+    k = torch.tensor(NUSCENES_K, dtype=torch.float64).expand(1, 1, 3, 3)
+    cases = [
+        (
+            world_to_cam,
+            k[0],
+            r"intrinsics: expected shape \(B, V, 3, 3\), got \(1, 3, 3\)",
+            "intrinsics[None]",
+        ),
+        (
+            world_to_cam,
+            k[0, 0],
+            r"intrinsics: expected shape \(B, V, 3, 3\), got \(3, 3\)",
+            "intrinsics[None, None]",
+        ),
+        (
+            world_to_cam[0],
+            k,
+            r"world_to_cam: expected shape \(B, V, 4, 4\), got \(1, 4, 4\)",
+            "world_to_cam[None]",
+        ),
+        (
+            world_to_cam[0, 0],
+            k,
+            r"world_to_cam: expected shape \(B, V, 4, 4\)",
+            "world_to_cam[None, None]",
+        ),
+    ]
+    module = DifferentiableSplatter()
+    for w2c, intrinsics, match, advice in cases:
+        for render in (splat, module):
+            with pytest.raises(ValueError, match=match) as info:
+                if keyword:
+                    render(gaussians, world_to_cam=w2c, intrinsics=intrinsics, image_size=(8, 8))
+                else:
+                    render(gaussians, w2c, intrinsics, (8, 8))
+            message = str(info.value)
+            assert advice in message, message
+            other = "world_to_cam" if advice.startswith("intrinsics") else "intrinsics"
+            assert f"{other}[" not in message, message

@@ -111,6 +111,7 @@ def occupancy_report(dtype: torch.dtype) -> OccupancyReport:
     metrics.update(
         torch.randint(0, 18, (2, 4, 4, 2), generator=g),
         torch.randint(0, 18, (2, 4, 4, 2), generator=g),
+        None,  # every voxel
     )
     return metrics.compute()
 

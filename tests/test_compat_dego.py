@@ -215,11 +215,11 @@ def test_metrics_warn_when_no_voxel_is_predicted_free() -> None:
     semantics = torch.randn(4, 4, 16, 16, generator=g)
     forgotten = semantics.argmax(-1) + 1  # no free-space overlay: every voxel has a class
     metrics = OccupancyMetrics("weak")
-    metrics.update(forgotten, gt)
+    metrics.update(forgotten, gt, None)
     with pytest.warns(UserWarning, match="occupancy_to_labels"):
         metrics.compute()
     metrics = OccupancyMetrics("weak")
-    metrics.update(occupancy_to_labels(density, semantics), gt)
+    metrics.update(occupancy_to_labels(density, semantics), gt, None)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         metrics.compute()

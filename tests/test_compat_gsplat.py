@@ -130,8 +130,9 @@ def test_equals_dego_splat_in_every_mode_and_layout(
         **options,
     )
     rule = "gsplat>=1.5" if version >= "1.5" else "gsplat<=1.4"
+    max_alpha = 0.99 if version >= "1.6" else 0.999
     expected_colors, expected_alphas, out = splat_equivalent(
-        t, render_mode, radius_rule=rule, **options
+        t, render_mode, radius_rule=rule, max_alpha=max_alpha, **options
     )
     channels = {"RGB": 3, "D": 1, "ED": 1, "RGB+D": 4, "RGB+ED": 4}[render_mode]
     assert colors.shape == (*batch, cameras, *SIZE, channels)  # gsplat's documented shapes
@@ -221,6 +222,21 @@ def test_gsplat_version_decides_the_radii_layout() -> None:
     assert old["radii"].shape == (2, 10)
 
 
+@pytest.mark.parametrize(
+    ("version", "max_alpha"), [("1.0", 0.999), ("1.4", 0.999), ("1.5.3", 0.999), ("1.6.0", 0.99)]
+)
+def test_gsplat_version_decides_the_alpha_cap(version: str, max_alpha: float) -> None:
+    """gsplat 1.6 caps alpha at 0.99 where 1.4 and 1.5 use 0.999 (its commit c5ff586b)."""
+    t = gsplat_inputs((), 1, 1, 3, seed=0, per_camera=False)
+    dtype = t["means"].dtype
+    t["means"] = torch.tensor([[0.0, 0.0, 4.0]], dtype=dtype)  # in front of the camera
+    t["scales"] = torch.full((1, 3), 10.0, dtype=dtype)  # wide: alpha > 0.999 at the centre
+    t["opacities"] = torch.tensor([0.99999], dtype=dtype)
+    t["viewmats"] = torch.eye(4, dtype=dtype)[None]
+    _, alphas, _ = call(t, gsplat_version=version)
+    assert float(alphas.max()) == pytest.approx(max_alpha, abs=1e-6)
+
+
 def test_layout_only_and_default_valued_options_are_accepted() -> None:
     class RollingShutterType(enum.Enum):  # stands in for gsplat's enum
         GLOBAL = 0
@@ -290,7 +306,7 @@ def test_bad_shapes_name_the_argument(change: Any, message: str) -> None:
         call(t)
 
 
-@pytest.mark.parametrize("version", ["2.0", "one", ""])
+@pytest.mark.parametrize("version", ["2.0", "one", "", "1.-1", "0.9"])
 def test_bad_gsplat_version_raises(version: str) -> None:
     t = gsplat_inputs((), 1, 8, 3, seed=1, per_camera=False)
     with pytest.raises(ValueError, match="gsplat_version"):

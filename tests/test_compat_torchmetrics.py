@@ -328,6 +328,25 @@ def test_bad_input_names_the_argument() -> None:
         rays.update(pred, np.full_like(gt, 255), origins)
 
 
+@pytest.mark.parametrize("protocol", ["occ3d", "weak"])
+def test_an_omitted_camera_mask_is_refused_as_by_dego(protocol: str) -> None:
+    pred, gt, _ = random_sample(12)
+    metric = OccupancyMetric(protocol)
+    with pytest.raises(ValueError, match=r"mask: .*camera mask.*mask=None"):
+        metric.update(pred, gt)
+    with pytest.raises(ValueError, match=r"mask: .*camera mask.*mask=None"):
+        metric(pred, gt)  # forward too
+    assert int(metric.confusion.sum()) == 0  # nothing was counted
+    own = OccupancyMetrics(protocol)
+    own.update(pred, gt, mask=None)
+    batch = metric(pred, gt, mask=None)  # explicit: every voxel
+    assert_same(batch, own.compute().miou)
+    assert torch.equal(metric.confusion, own.confusion)
+    surroundocc = OccupancyMetric("surroundocc")  # no camera mask in its protocol
+    surroundocc.update(pred, gt)
+    assert int(surroundocc.confusion.sum()) > 0
+
+
 @pytest.mark.parametrize(
     ("make", "match"),
     [

@@ -347,6 +347,72 @@ def test_every_bad_key_is_listed() -> None:
         assert expected in message, (expected, message)
 
 
+@pytest.mark.parametrize("strict", [True, False])
+def test_bogus_layer_index_is_refused_before_building(strict: bool) -> None:
+    """One key ``feature_net.200000.weight`` once built a 100,001-layer module and a
+    5-million-character message (issue 26): the inferred depth is bounded first."""
+    state = dict(make_reference().state_dict())
+    state["feature_net.200000.weight"] = torch.zeros(12, 12, dtype=torch.float64)
+    with pytest.raises(StateDictMismatchError) as info:
+        DecoupledDeformation.from_official_state_dict(state, strict=strict)
+    message = str(info.value)
+    assert len(message) < 2000, len(message)
+    assert "feature_net.200000.weight" in message and "100001" in message, message
+    assert "depth=" in message, message
+
+
+def test_mismatch_lists_are_bounded() -> None:
+    state = dict(make_reference().state_dict())
+    state |= {f"extra.{i}.weight": torch.zeros(1) for i in range(500)}
+    for key in [k for k in state if k.startswith(("position_head", "rotation_head"))]:
+        state[key] = torch.zeros(1, dtype=torch.float64)  # 8 mis-shaped keys
+    with pytest.raises(StateDictMismatchError) as info:
+        DecoupledDeformation.from_official_state_dict(state)
+    message = str(info.value)
+    assert len(message) < 3000, len(message)
+    assert "unexpected (500): extra.0.weight, extra.1.weight" in message, message
+    assert "... and 480 more" in message and "extra.499.weight" not in message, message
+    assert "mis-shaped or invalid (8)" in message and "rotation_head.2.bias" in message
+
+
+@pytest.mark.parametrize("strict", [True, False])
+def test_gaps_in_the_inferred_layers_are_refused(strict: bool) -> None:
+    state = dict(make_reference().state_dict())  # depth 3: feature_net.0, .2, .4
+    del state["feature_net.2.weight"], state["feature_net.2.bias"]
+    with pytest.raises(StateDictMismatchError, match=r"feature_net: .*\[0, 4\].*depth=") as info:
+        DecoupledDeformation.from_official_state_dict(state, strict=strict)
+    assert len(str(info.value)) < 2000
+    state["feature_net.3.weight"] = torch.zeros(12, 12, dtype=torch.float64)  # a ReLU slot
+    with pytest.raises(StateDictMismatchError, match=r"feature_net: .*\[0, 3, 4\]"):
+        DecoupledDeformation.from_official_state_dict(state, strict=strict)
+    # Given explicitly, the depth is not inferred: the gap is missing keys again.
+    del state["feature_net.3.weight"]
+    with pytest.raises(StateDictMismatchError, match=r"missing \(2\): feature_net\.2\.weight"):
+        DecoupledDeformation.from_official_state_dict(state, depth=3)
+    with pytest.warns(UserWarning, match="feature_net.2.weight"):
+        module = DecoupledDeformation.from_official_state_dict(state, depth=3, strict=False)
+    assert module.trunk is not None and len(module.trunk) == 3
+
+
+def test_inferred_depth_is_bounded_but_an_explicit_one_is_not() -> None:
+    deep = make_reference(hidden_dim=2, depth=65).state_dict()
+    with pytest.raises(StateDictMismatchError, match=r"feature_net\.128\.bias.*65.*above 64"):
+        DecoupledDeformation.from_official_state_dict(deep)
+    module = DecoupledDeformation.from_official_state_dict(deep, depth=65)
+    assert module.trunk is not None and len(module.trunk) == 2 * 64 - 1
+
+
+def test_expected_official_shapes_match_the_module() -> None:
+    from dego.deformation_checkpoint import _official_shapes
+
+    for sizes in [SIZES, {**SIZES, "depth": 1, "pos_levels": 0, "feature_dim": 0}]:
+        module = DecoupledDeformation(preset="official", head_hidden=sizes["hidden_dim"], **sizes)
+        shapes = {k: tuple(v.shape) for k, v in official_tensors(module).items()}
+        assert list(
+            _official_shapes({**sizes, "head_hidden": sizes["hidden_dim"]}).items()
+        ) == list(shapes.items())
+
+
 def test_frequency_buffers_must_be_powers_of_two() -> None:
     state = dict(make_reference().state_dict())
     state["pos_enc_freqs"] = torch.tensor([1.0, 3.0])
@@ -667,3 +733,22 @@ def test_fixed_mask_zero_recipe_moves_only_dynamic_means(preset: str) -> None:
     assert torch.equal(
         moved, torch.isin(torch.arange(1, 17), torch.tensor(GAUSSIANFLOWOCC_DYNAMIC_CLASSES))
     )
+
+
+@pytest.mark.parametrize(("extra", "cut"), [(0, False), (1, True)])
+def test_keys_are_cut_beyond_120_characters(extra: int, cut: bool) -> None:
+    from dego import deformation_checkpoint
+
+    key = "k" * (deformation_checkpoint._KEY_CHARS + extra)
+    assert (deformation_checkpoint._short(key) != key) == cut
+    assert deformation_checkpoint._short(key).startswith("k" * deformation_checkpoint._KEY_CHARS)
+
+
+@pytest.mark.parametrize(("count", "more"), [(20, False), (21, True)])
+def test_gap_listings_show_twenty_layer_indices(count: int, more: bool) -> None:
+    state = dict(make_reference().state_dict())  # depth 3: feature_net.0, .2, .4
+    for index in [2 * i for i in range(3, count - 1)] + [2 * count]:  # a gap before the last
+        state[f"feature_net.{index}.weight"] = torch.zeros(12, 12, dtype=torch.float64)
+    with pytest.raises(StateDictMismatchError, match="layer indices") as info:
+        DecoupledDeformation.from_official_state_dict(state)
+    assert ("..." in str(info.value).split("layer indices")[1].split("]")[0]) == more

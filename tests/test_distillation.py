@@ -367,3 +367,30 @@ def test_projector_handles_empty_leading_axes(shape: tuple[int, int, int]) -> No
     x = torch.randn(*shape, dtype=torch.float64)
     out = proj(x)
     assert out.shape == (*shape[:-1], 5) and out.dtype == torch.float64
+
+
+def test_the_masked_out_guarantee_ends_at_the_loss_inputs() -> None:
+    """docs/validation.md: masked-out NaN/inf in ``student`` / ``teacher`` gives exactly zero
+    gradient to those two tensors there; a layer *upstream* whose own input is inf at those
+    pixels still computes 0 * inf = NaN in its weight gradient (autograd, not the loss)."""
+    torch.manual_seed(0)
+    mask = torch.ones(1, 1, 3, 4, dtype=torch.bool)
+    mask[0, 0, 1, 2] = False
+    teacher = torch.randn(1, 1, 5, 3, 4)
+    teacher[0, 0, :, 1, 2] = float("nan")
+    inputs = torch.randn(1, 1, 3, 3, 4)
+    inputs[0, 0, :, 1, 2] = float("inf")
+    layer = torch.nn.Conv2d(3, 5, 1)
+    student = layer(inputs.flatten(0, 1)).unflatten(0, (1, 1))
+    student.retain_grad()
+    loss = distillation_loss(student, teacher, mask)
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert torch.equal(student.grad[0, 0, :, 1, 2], torch.zeros(5))
+    assert torch.isfinite(student.grad).all()
+    assert torch.isnan(layer.weight.grad).any()  # the documented limit, not a promise
+    clean = torch.where(mask.unsqueeze(2), inputs, torch.zeros(()))  # what the docs advise
+    layer.zero_grad()
+    student = layer(clean.flatten(0, 1)).unflatten(0, (1, 1))
+    distillation_loss(student, teacher, mask).backward()
+    assert torch.isfinite(layer.weight.grad).all()

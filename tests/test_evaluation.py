@@ -287,6 +287,29 @@ def test_classes_and_single_protocol(
     assert code == 2 and err.startswith("error: classes:")
 
 
+def test_reports_are_written_whole_or_not_at_all(
+    tree: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tests.test_cli_faults import FullDisk
+
+    out = tmp_path / "reports"
+    out.mkdir()
+    json_path, md_path = out / "r.json", out / "r.md"
+    json_path.write_text("previous json\n")
+    md_path.write_text("previous md\n")
+    args = ["--gt", str(tree["gt"]), "--pred", str(tree["pred"]), "--no-rayiou", "--quiet"]
+    args += ["--json", str(json_path), "--markdown", str(md_path)]
+    FullDisk(monkeypatch, out.resolve())  # the second report fills the disk
+    with pytest.raises(OSError, match="No space left"):
+        run_cli(args, capsys)
+    assert sorted(p.name for p in out.iterdir()) == ["r.json", "r.md"]  # no temporary files
+    assert json_path.read_text() == "previous json\n" and md_path.read_text() == "previous md\n"
+    monkeypatch.undo()
+    code, _, _ = run_cli(args, capsys)
+    assert code == 0 and json.loads(json_path.read_text())["samples"] == len(TOKENS)
+    assert sorted(p.name for p in out.iterdir()) == ["r.json", "r.md"]
+
+
 def test_python_m_dego_eval(tree: dict, tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     command = [sys.executable, "-m", "dego", "eval", "--gt", str(tree["gt"])]

@@ -175,7 +175,7 @@ def test_bool_and_floating_labels_are_refused(dtype: torch.dtype) -> None:
     with pytest.raises(TypeError, match="gt"):
         confusion_matrix(ints, labels)
     with pytest.raises(TypeError, match="pred"):
-        OccupancyMetrics().update(labels, ints)
+        OccupancyMetrics().update(labels, ints, None)
     with pytest.raises(TypeError, match="gt"):
         RayIoU(grid=GRID, rays=RAYS).update(ints, labels, ORIGINS)
     with pytest.raises(TypeError, match="labels"):
@@ -247,14 +247,14 @@ def test_ignore_label_minus_one_works_in_update(dtype: torch.dtype) -> None:
     gt = torch.tensor([[[4, -1, -1, 17, 3]]], dtype=dtype)
     pred = torch.tensor([[[4, 4, 17, 17, 2]]], dtype=dtype)
     metric = OccupancyMetrics(protocol="occ3d", ignore_label=-1)
-    metric.update(pred, gt)
+    metric.update(pred, gt, None)
     assert int(metric.confusion.sum()) == 3  # the two -1 voxels are skipped
     assert int(metric.confusion[4, 4]) == int(metric.confusion[17, 17]) == 1
     assert int(metric.confusion[3, 2]) == 1
     with pytest.raises(ValueError, match=r"pred: label -1 is out of range"):
-        metric.update(gt, pred)  # the ignore label is no prediction
+        metric.update(gt, pred, None)  # the ignore label is no prediction
     with pytest.raises(ValueError, match=r"gt: label -2 is out of range; expected 0\.\.17 or"):
-        metric.update(pred, torch.full_like(gt, -2))
+        metric.update(pred, torch.full_like(gt, -2), None)
 
 
 def test_ignore_label_that_the_dtype_cannot_hold_is_no_ignore_label() -> None:
@@ -274,7 +274,7 @@ def test_out_of_range_labels_name_the_argument_and_the_value(bad: int) -> None:
     with pytest.raises(ValueError, match=rf"gt: label {bad} is out of range"):
         confusion_matrix(gt, wrong, ignore_label=ignore)
     with pytest.raises(ValueError, match=rf"pred: label {bad} is out of range"):
-        OccupancyMetrics(ignore_label=ignore).update(wrong, gt)
+        OccupancyMetrics(ignore_label=ignore).update(wrong, gt, None)
     ray_gt = torch.from_numpy(occ3d_labels(1)).to(dtype)
     ray_bad = ray_gt.clone()
     ray_bad[1, 2, 3] = bad

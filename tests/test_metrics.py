@@ -42,7 +42,7 @@ def test_hand_made_confusion_matrix() -> None:
     assert torch.equal(conf, expected)
 
     metrics = OccupancyMetrics("occ3d")
-    metrics.update(pred, gt)
+    metrics.update(pred, gt, None)
     report = metrics.compute()
     # car: tp 1, fn 1 (-> ped), fp 1 (free -> car) => 1/3; pedestrian: tp 1, fp 1 => 1/2
     assert report.per_class[4].item() == pytest.approx(1 / 3)
@@ -63,7 +63,7 @@ def test_predicted_but_absent_class_scores_zero_and_absent_class_is_nan() -> Non
     pred = gt.clone()
     pred[0, 0, 1] = 3  # bus predicted, absent from gt
     metrics = OccupancyMetrics("occ3d")
-    metrics.update(pred, gt)
+    metrics.update(pred, gt, None)
     report = metrics.compute()
     assert report.per_class[3].item() == 0.0
     assert report.per_class[4].item() == 1.0
@@ -76,8 +76,8 @@ def test_protocols_differ_where_others_and_other_flat_matter() -> None:
     gt = torch.tensor([[[0, 12, 4, 4, 17, 17]]], dtype=torch.uint8)
     pred = torch.tensor([[[4, 17, 4, 17, 17, 12]]], dtype=torch.uint8)
     occ3d, weak = OccupancyMetrics("occ3d"), OccupancyMetrics("weak")
-    occ3d.update(pred, gt)
-    weak.update(pred, gt)
+    occ3d.update(pred, gt, None)
+    weak.update(pred, gt, None)
     r_occ3d, r_weak = occ3d.compute(), weak.compute()
     # occ3d: car tp 1, fp 1 (others -> car), fn 1 => 1/3; others 0; other_flat 0 (fp 1, fn 1)
     assert r_occ3d.per_class[4].item() == pytest.approx(1 / 3)
@@ -99,7 +99,7 @@ def test_ignore_label_is_skipped() -> None:
     gt = torch.tensor([[[4, 255, 255, 17]]], dtype=torch.uint8)
     pred = torch.tensor([[[4, 4, 17, 17]]], dtype=torch.uint8)
     metrics = OccupancyMetrics("occ3d")
-    metrics.update(pred, gt)
+    metrics.update(pred, gt, None)
     assert int(metrics.confusion.sum()) == 2
     assert metrics.compute().per_class[4].item() == 1.0
 
@@ -111,7 +111,7 @@ def test_ignore_labels_below_zero_or_above_255_are_skipped(ignore: int) -> None:
     gt = torch.tensor([[[4, ignore, ignore, 17]]], dtype=torch.int16)
     pred = torch.tensor([[[4, 4, 17, 17]]], dtype=torch.int16)
     metrics = OccupancyMetrics("occ3d", ignore_label=ignore)
-    metrics.update(pred, gt)
+    metrics.update(pred, gt, None)
     metrics.update(pred[None], gt[None], torch.ones(1, 1, 1, 4, dtype=torch.bool))
     assert int(metrics.confusion.sum()) == 4
     assert metrics.compute().per_class[4].item() == 1.0
@@ -202,12 +202,12 @@ def test_pooled_differs_from_mean_of_per_sample() -> None:
     gt_b[0, 0, 0] = 4
     pred_a, pred_b = gt_a.copy(), np.full((4, 4, 4), FREE, np.uint8)
     pooled = OccupancyMetrics("occ3d")
-    pooled.update(pred_a, gt_a)
-    pooled.update(pred_b, gt_b)
+    pooled.update(pred_a, gt_a, None)
+    pooled.update(pred_b, gt_b, None)
     per_sample = []
     for pred, gt in [(pred_a, gt_a), (pred_b, gt_b)]:
         single = OccupancyMetrics("occ3d")
-        single.update(pred, gt)
+        single.update(pred, gt, None)
         per_sample.append(single.compute().per_class[4].item())
     assert pooled.compute().per_class[4].item() == pytest.approx(32 / 33)
     assert np.mean(per_sample) == pytest.approx(0.5)
@@ -385,7 +385,7 @@ def test_out_of_range_labels_name_the_argument() -> None:
         OccupancyMetrics().update(bad_pred, gt, mask)
     with pytest.raises(ValueError, match="gt: label -1"):
         OccupancyMetrics().update(
-            torch.zeros(2, 2, 2, dtype=torch.long), -torch.ones(2, 2, 2, dtype=torch.long)
+            torch.zeros(2, 2, 2, dtype=torch.long), -torch.ones(2, 2, 2, dtype=torch.long), None
         )
 
 
@@ -397,6 +397,34 @@ def test_bad_masks() -> None:
         OccupancyMetrics().update(pred, gt, mask[..., 0])
     with pytest.raises(TypeError, match="mask: expected dtype bool"):
         OccupancyMetrics().update(pred, gt, mask.astype(np.float32))
+
+
+@pytest.mark.parametrize("protocol", ["occ3d", "weak"])
+def test_protocols_scored_inside_the_camera_mask_refuse_an_omitted_mask(protocol: str) -> None:
+    pred, gt, mask = random_sample(10)
+    metrics = OccupancyMetrics(protocol)
+    with pytest.raises(ValueError, match=r"mask: .*camera mask.*mask=None") as err:
+        metrics.update(pred, gt)
+    assert repr(protocol) in str(err.value)
+    assert int(metrics.confusion.sum()) == 0  # nothing counted
+    metrics.update(pred, gt, mask=None)  # explicit: every voxel
+    metrics.update(pred, gt, None)
+    every_voxel = confusion_matrix(pred, gt, removed_classes=metrics.removed_classes)
+    assert torch.equal(metrics.confusion, 2 * every_voxel)
+    metrics.reset()
+    metrics.update(pred, gt, mask)
+    assert torch.equal(
+        metrics.confusion, confusion_matrix(pred, gt, mask, removed_classes=metrics.removed_classes)
+    )
+
+
+def test_protocols_without_a_camera_mask_score_every_voxel_by_default() -> None:
+    pred, gt, _ = random_sample(11)
+    metrics, explicit = OccupancyMetrics("surroundocc"), OccupancyMetrics("surroundocc")
+    metrics.update(pred, gt)
+    explicit.update(pred, gt, mask=None)
+    assert torch.equal(metrics.confusion, explicit.confusion)
+    assert int(metrics.confusion.sum()) > 0
 
 
 def test_bad_shapes_and_dtypes() -> None:
@@ -438,7 +466,7 @@ def test_other_label_sets_use_occ3d_protocol() -> None:
     # Occ3D-Waymo style: labels 0..15 and free 23 in a 24-label matrix.
     metrics = OccupancyMetrics("occ3d", num_classes=24, free_label=23)
     gt = torch.tensor([[[0, 5, 23, 23]]])
-    metrics.update(gt.clone(), gt)
+    metrics.update(gt.clone(), gt, None)
     report = metrics.compute()
     assert report.miou == 1.0 and report.iou == 1.0 and len(report.evaluated_classes) == 23
     assert dict(report.group_means) == {}
@@ -554,3 +582,24 @@ def test_surroundocc_protocol_matches_gaussianformers_recipe(seed: int, noise: f
 def test_surroundocc_protocol_needs_the_18_labels() -> None:
     with pytest.raises(ValueError, match="'surroundocc' is defined on 18 labels"):
         OccupancyMetrics("surroundocc", num_classes=20, free_label=19)
+
+
+def test_config_digest_is_sha256_of_canonical_json() -> None:
+    """Ranks compare this digest in ``sync``: it must not depend on the process (no salted
+    ``hash``) nor on key order."""
+    import hashlib
+    import json
+
+    from dego.metrics.counts import config_digest
+
+    config = {"protocol": "occ3d", "ignore_label": 255, "num_classes": 18}
+    expected = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).digest()[:16]
+    assert config_digest(config) == tuple(expected)
+    assert config_digest(dict(reversed(config.items()))) == tuple(expected)
+    assert config_digest({**config, "ignore_label": 254}) != tuple(expected)
+
+
+def test_the_omitted_mask_default_reads_well_in_help() -> None:
+    import inspect
+
+    assert str(inspect.signature(OccupancyMetrics.update)).endswith("= <omitted>) -> 'None'")

@@ -34,8 +34,28 @@ def test_gsplat_backend_explains_why_it_cannot_run() -> None:
     gs, w2c, k = scene()
     with pytest.raises(ValueError, match=r"backend: cannot use 'gsplat'.*CUDA"):
         splat(gs, w2c, k, (32, 48), backend="gsplat")
-    with pytest.raises(ValueError, match=r"max_alpha=0\.99 differs"):
-        splat(gs, w2c, k, (32, 48), backend="gsplat", max_alpha=0.99)
+
+
+@pytest.mark.parametrize(
+    ("version", "wrong", "fixed"),
+    [((1, 4), 0.99, 0.999), ((1, 5), 0.99, 0.999), ((1, 6), 0.999, 0.99)],
+)
+def test_the_alpha_cap_is_that_of_the_installed_release(
+    monkeypatch: pytest.MonkeyPatch, version: tuple[int, int], wrong: float, fixed: float
+) -> None:
+    """gsplat 1.6 compiles max alpha 0.99, 1.4 and 1.5 0.999: ``auto`` must not pick a
+    release whose constant differs from the requested one."""
+    from dego.splatting import gsplat_backend
+
+    monkeypatch.setattr(gsplat_backend, "installed_version", lambda: version)
+    gs, w2c, k = scene()
+    with pytest.raises(
+        ValueError, match=rf"max_alpha={wrong} differs from the installed gsplat .*fixed {fixed}"
+    ):
+        splat(gs, w2c, k, (32, 48), backend="gsplat", max_alpha=wrong)
+    with pytest.raises(ValueError, match="CUDA") as info:
+        splat(gs, w2c, k, (32, 48), backend="gsplat", max_alpha=fixed)
+    assert "max_alpha" not in str(info.value)
 
 
 @pytest.mark.skipif(
@@ -62,3 +82,17 @@ def test_gsplat_backend_matches_torch_path_on_cuda(options: dict) -> None:
     theirs = splat(gs, w2c, k, (32, 48), backend="gsplat", features=per_camera, **options)
     ours = splat(gs, w2c, k, (32, 48), radius_rule=rule, features=per_camera, **options)
     torch.testing.assert_close(theirs.features, ours.features, rtol=1e-4, atol=1e-4)
+
+
+def test_release_constants_are_gsplat_s() -> None:
+    """gsplat's compiled constants (gsplat/cuda/include/Common.h): 1.4 and 1.5 equal
+    SplatConfig's defaults; 1.6 differs in max alpha only."""
+    from dego.splatting import gsplat_backend
+    from dego.splatting.splatter import SplatConfig
+
+    defaults = SplatConfig()
+    for version in ((1, 4), (1, 5)):
+        constants = gsplat_backend.constants_of(version)
+        assert constants == {"max_alpha": 0.999, "alpha_min": 1 / 255, "transmittance_min": 1e-4}
+        assert all(getattr(defaults, name) == value for name, value in constants.items())
+    assert gsplat_backend.constants_of((1, 6)) == {**constants, "max_alpha": 0.99}

@@ -19,6 +19,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import dego
 import dego.data.synthetic as synthetic_module
 from dego.classes import Occ3DLabel
 from dego.data.primitives import Primitives, yaw_matrix
@@ -336,6 +337,26 @@ def test_bad_seed_and_image_size_types(kwargs) -> None:
     kwargs = {"seed": SEED, **kwargs}
     with pytest.raises(ValueError):
         SyntheticScene(kwargs.pop("seed"), **kwargs)
+
+
+def test_huge_images_are_refused_by_the_memory_guard() -> None:
+    """``image_size=(100000, 100000)`` would need terabytes per frame (issue 26): refused
+    by the memory guard when the scene is made, before anything is allocated."""
+    with pytest.raises(ValueError, match="memory limit") as info:
+        SyntheticScene(SEED, image_size=(100_000, 100_000))
+    message = str(info.value)
+    assert "SyntheticScene" in message and "image_size" in message, message
+    assert "(100000, 100000)" in message, message
+    with dego.memory_limit(None):  # no limit: the scene is made (no image allocated yet)
+        assert SyntheticScene(SEED, image_size=(100_000, 100_000)).image_size == (100_000, 100_000)
+
+
+def test_frames_go_through_the_memory_guard_of_the_time() -> None:
+    scene = SyntheticScene(SEED, num_frames=3, image_size=(64, 176))
+    with dego.memory_limit(2**20):  # far below one frame's ~17 MB of camera buffers
+        for build in (lambda: scene.frame(0), lambda: scene.instance_pixels(0), scene.frames):
+            with pytest.raises(ValueError, match=r"SyntheticScene.*image_size.*memory limit"):
+                build()
 
 
 def test_boundary_arguments_are_accepted() -> None:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import io
+import os
+import time
+import uuid
 import zipfile
 from pathlib import Path
 
@@ -112,6 +115,57 @@ def test_contains_keys_nbytes_overwrite(tmp_path: Path) -> None:
     assert cache.load("a", 0).shape == (3, 2, 2)
     assert not [p for p in cache.root.iterdir() if p.name.startswith(".")]  # no temp files
     assert "float16" in repr(cache)
+
+
+def test_opening_removes_stale_temporaries_of_interrupted_saves(tmp_path: Path) -> None:
+    """A save killed before its os.replace leaves ``.<entry>.<hex>.tmp`` (issue 26): opening
+    the cache removes those older than an hour and keeps younger ones (a save still running
+    in another process) and anything else."""
+    cache = TeacherFeatureCache(tmp_path)
+    entry = cache.save("s", 0, _features(2, 3, 4))
+    hour_ago = time.time() - 3600 - 60
+
+    def temporary(name: str, *, old: bool) -> Path:
+        path = tmp_path / f".{name}.{uuid.uuid4().hex}.tmp"
+        path.write_bytes(b"\0" * 1024)
+        if old:
+            os.utime(path, (hour_ago, hour_ago))
+        return path
+
+    stale = [temporary("s_cam_0.npz", old=True), temporary("other_cam_12.npz", old=True)]
+    fresh = temporary("s_cam_1.npz", old=False)
+    kept = [
+        tmp_path / ".notes.tmp",  # not a cache temporary
+        tmp_path / f"s_cam_0.npz.{uuid.uuid4().hex}.tmp",  # not hidden: not write_npz's name
+        tmp_path / f".data.npz.{uuid.uuid4().hex}.tmp",  # not an entry's name
+    ]
+    for path in kept:
+        path.write_bytes(b"x")
+        os.utime(path, (hour_ago, hour_ago))
+    directory = tmp_path / f".s_cam_2.npz.{uuid.uuid4().hex}.tmp"
+    directory.mkdir()
+    os.utime(directory, (hour_ago, hour_ago))
+
+    reopened = TeacherFeatureCache(tmp_path)
+    assert not any(path.exists() for path in stale)
+    assert fresh.exists() and all(path.exists() for path in kept) and directory.is_dir()
+    assert entry.exists() and reopened.keys() == [("s", 0)]
+    assert reopened.load("s", 0).shape == (2, 3, 4)
+    TeacherFeatureCache(tmp_path / "not-yet-created")  # nothing to clean: no error
+
+
+def test_features_of_another_shape_are_refused_from_the_header(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With ``expected_shape``, an entry declaring another (say huge) shape is refused from
+    its ``.npy`` header, before anything is inflated (issue 26)."""
+    cache = TeacherFeatureCache(tmp_path)
+    path = cache.save("s", 0, _features(2, 3, 4))
+    calls = []
+    monkeypatch.setattr(np.lib.format, "read_array", lambda *a, **k: calls.append(a))
+    with pytest.raises(ValueError, match=r"features: shape \(2, 3, 4\), expected_shape is") as e:
+        cache.load("s", 0, expected_shape=(2048, 18, 50))
+    assert calls == [] and str(path) in str(e.value)
 
 
 # -- errors ---------------------------------------------------------------------------
@@ -287,3 +341,21 @@ def test_size_factor_against_the_official_layout(tmp_path: Path) -> None:
     assert ours < 2048 * 18 * 50 * 2 + 4096  # the float16 map plus small metadata
     assert factor >= 2.0, factor
     assert 2.4 < factor < 2.7  # ~9.49 MB / ~3.69 MB = 2.57
+
+
+@pytest.mark.parametrize("key", ["format_version", "camera", "dtype", "sample_id"])
+def test_metadata_must_be_scalars_from_the_header(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, key: str
+) -> None:
+    """Refused from the ``.npy`` header, before any member is inflated."""
+    cache = TeacherFeatureCache(tmp_path)
+    path = cache.save("s", 0, _features(2, 3, 4))
+    with np.load(path) as stored:
+        arrays = {name: stored[name] for name in stored.files}
+    arrays[key] = np.stack([arrays[key], arrays[key]])
+    np.savez(path, **arrays)
+    calls = []
+    monkeypatch.setattr(np.lib.format, "read_array", lambda *a, **k: calls.append(a))
+    with pytest.raises(ValueError, match=rf"{key}: expected a scalar"):
+        cache.load("s", 0)
+    assert calls == []

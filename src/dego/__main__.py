@@ -2,6 +2,10 @@
 
 import sys
 
-from dego.cli import main
+try:  # importing torch takes seconds: Ctrl-C then is no traceback either
+    from dego.cli import main
+except KeyboardInterrupt:
+    print("dego: interrupted", file=sys.stderr)
+    sys.exit(130)
 
 sys.exit(main())

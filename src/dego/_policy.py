@@ -2,9 +2,9 @@
 
 - **Memory guard.** Before a large allocation an entry point estimates the bytes it needs
   and calls :func:`check_memory`, which raises ``ValueError`` naming the sizes and the
-  estimate when it exceeds the limit (default 64 GiB). Change the limit with
-  :func:`dego.set_memory_limit` (``None``: no limit) or temporarily with
-  :func:`dego.memory_limit`.
+  estimate when it exceeds the limit (default 64 GiB). Change the process-wide limit with
+  :func:`dego.set_memory_limit` (``None``: no limit), or the calling thread's limit for a
+  block with :func:`dego.memory_limit` (other threads keep theirs).
 - **dtypes.** Floating inputs of one call share one dtype (``TypeError`` naming the
   argument otherwise: nothing is promoted silently). float16 and bfloat16 inputs are
   computed in float32 and the results returned in the input dtype (:func:`compute_dtype`).
@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
@@ -33,39 +34,60 @@ from dego._typing import _is_compiling
 
 _DEFAULT_LIMIT = 64 * 2**30
 _limit: int | None = _DEFAULT_LIMIT
+"""The process-wide limit (:func:`set_memory_limit`)."""
+_thread = threading.local()
+"""Per-thread override of ``memory_limit`` blocks: attribute ``limit`` while inside one.
+A ``threading.local`` rather than a ``ContextVar``: dynamo traces the former, not the latter."""
 
 HALF_DTYPES = (torch.float16, torch.bfloat16)
 F = TypeVar("F", bound=Callable[..., Any])
 
 
 def get_memory_limit() -> int | None:
-    """The current per-call memory limit in bytes (``None``: no limit)."""
-    return _limit
+    """The calling thread's per-call memory limit in bytes (``None``: no limit): that of
+    the innermost :func:`memory_limit` block it is in, else the process-wide one."""
+    return getattr(_thread, "limit", _limit)
 
 
-def set_memory_limit(nbytes: int | None) -> int | None:
-    """Set the per-call memory limit (bytes, or ``None`` for no limit); returns the old one.
-
-    Entry points estimate what a call will allocate (images, grids, pair buffers) and raise
-    a ``ValueError`` before allocating when the estimate exceeds the limit (default 64 GiB).
-    """
-    global _limit
+def _check_limit(nbytes: int | None) -> None:
     if nbytes is not None and (
         isinstance(nbytes, bool) or not isinstance(nbytes, int) or nbytes <= 0
     ):
         raise ValueError(f"nbytes: expected a positive int or None, got {nbytes!r}")
+
+
+def set_memory_limit(nbytes: int | None) -> int | None:
+    """Set the process-wide per-call memory limit (bytes, or ``None`` for no limit); returns
+    the old one.
+
+    Entry points estimate what a call will allocate (images, grids, pair buffers) and raise
+    a ``ValueError`` before allocating when the estimate exceeds the limit (default 64 GiB).
+    Threads inside a :func:`memory_limit` block keep the block's limit until they leave it.
+    """
+    global _limit
+    _check_limit(nbytes)
     previous, _limit = _limit, nbytes
     return previous
 
 
 @contextlib.contextmanager
 def memory_limit(nbytes: int | None) -> Iterator[None]:
-    """Context manager: the memory limit is ``nbytes`` inside the block."""
-    previous = set_memory_limit(nbytes)
+    """Context manager: the calling thread's memory limit is ``nbytes`` inside the block.
+
+    Thread-local: other threads keep their own limit, and leaving the block restores this
+    thread's previous one (blocks nest), whatever other threads enter or leave meanwhile.
+    """
+    _check_limit(nbytes)
+    missing = object()
+    previous = getattr(_thread, "limit", missing)
+    _thread.limit = nbytes
     try:
         yield
     finally:
-        set_memory_limit(previous)
+        if previous is missing:
+            del _thread.limit
+        else:
+            _thread.limit = previous
 
 
 def _gib(nbytes: float) -> str:
@@ -78,7 +100,7 @@ def check_memory(what: str, nbytes: float, sizes: str) -> None:
     ``what`` names the call (e.g. ``"splat"``), ``sizes`` the sizes behind the estimate
     (e.g. ``"B*V = 6 images of 256 x 704 x 49 channels, float32"``).
     """
-    limit = _limit
+    limit = get_memory_limit()
     if limit is not None and (not math.isfinite(nbytes) or nbytes > limit):
         raise ValueError(
             f"{what}: would need about {_gib(nbytes)} ({sizes}), above dego's memory "

@@ -8,6 +8,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from dego._policy import check_dtype
 from dego._typing import typechecked
 
 _LAST_ROW_ATOL = 1e-6
@@ -168,12 +169,15 @@ def apply_image_aug(
         ``(*, 3, 3)`` intrinsics of the augmented image.
 
     Raises:
+        TypeError: ``post_rot`` or ``post_tran`` of another dtype than ``intrinsics``
+            (nothing is promoted silently).
         ValueError: non-finite inputs, a bad 3x3/3-vector layout, or a ``post_rot`` that
             rotates or flips the image, which no pinhole ``K`` with zero skew and positive
             focal lengths can represent: warp the image instead (undo the rotation/flip on
             it), or move the rotation about the optical axis into ``world_to_cam``.
     """
     for name, value in (("post_rot", post_rot), ("post_tran", post_tran)):
+        check_dtype(name, value, intrinsics.dtype, "intrinsics")
         if not bool(torch.isfinite(value).all()):
             raise ValueError(f"{name}: expected finite values, got NaN or inf")
     if post_rot.shape[-1] == 3:

@@ -15,13 +15,18 @@ import argparse
 import dataclasses
 import json
 import math
+import re
+import signal
 import sys
+import threading
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TextIO
 
 import torch
 
+from dego._atomic import make_output_dir, remove_empty_dirs, write_files
 from dego._version import __version__
 from dego.data.synthetic import SyntheticScene
 from dego.demo import (
@@ -42,6 +47,8 @@ from dego.demo import (
     row_name,
     score_clip,
 )
+from dego.demo.clip import MAX_DEMO_FRAMES, max_gaussians
+from dego.demo.fit import MAX_SEED
 from dego.evaluation import command as eval_command
 from dego.study import QUICK_STUDY, STUDY_VARIANTS, StudyConfig, run_study, write_study
 
@@ -76,6 +83,27 @@ DURATIONS = {
 }
 """How long each :data:`BUDGETS` entry takes, as ``--help`` and docs/demo.md say it (the
 tests check that they agree); measured on docs/performance.md's "The demo"."""
+
+
+MAX_ITERATIONS = 100_000
+"""The most optimiser steps ``--iterations`` takes (the full demo takes 150; 100,000 steps
+of one fit are hours on a CPU): more is a typing slip, refused before any work."""
+
+MAX_LIST_VALUES = 1000
+"""The most values ``dego study --seeds`` / ``--budgets`` take (each seed renders a clip
+and each value multiplies the fits)."""
+
+INTERRUPTED_STATUS = 130
+"""Exit status after Ctrl-C (128 + SIGINT, as shells report it)."""
+
+
+class UsageError(Exception):
+    """A flag's value found wrong once the work has looked at the data: ``flag`` and a
+    one-line ``message``; :func:`main` reports it as a usage error (exit status 2)."""
+
+    def __init__(self, flag: str, message: str) -> None:
+        super().__init__(f"{flag}: {message}")
+        self.flag, self.message = flag, message
 
 
 def describe_budget(name: str) -> str:
@@ -137,25 +165,37 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help=f"a smaller budget: {describe_budget('quick')} ({DURATIONS['quick']})",
     )
-    demo.add_argument("--seed", type=int, default=0, help="scene and fitting seed (0)")
     demo.add_argument(
-        "--frames", type=int, help=f"frames of the clip ({full['frames']}; quick {quick['frames']})"
+        "--seed", type=_seed, default=0, help=f"scene and fitting seed, 0-{MAX_SEED} (0)"
+    )
+    demo.add_argument(
+        "--frames",
+        type=_bounded_int(1, MAX_DEMO_FRAMES),
+        help=f"frames of the clip, 1-{MAX_DEMO_FRAMES} ({full['frames']}; quick {quick['frames']})",
     )
     demo.add_argument(
         "--iterations",
-        type=int,
-        help=f"optimiser steps per variant ({full['iterations']}; quick {quick['iterations']})",
+        type=_bounded_int(0, MAX_ITERATIONS),
+        help=f"optimiser steps per variant, 0-{MAX_ITERATIONS:,} ({full['iterations']}; "
+        f"quick {quick['iterations']})",
     )
     demo.add_argument(
         "--gaussians",
-        type=int,
-        help=f"canonical Gaussians ({full['gaussians']}; quick {quick['gaussians']})",
+        type=_bounded_int(1, max_gaussians(MAX_DEMO_FRAMES)),
+        help=f"canonical Gaussians, at most one per camera pixel of the clip "
+        f"({full['gaussians']}; quick {quick['gaussians']})",
     )
-    demo.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (cpu)")
+    demo.add_argument(
+        "--device",
+        type=eval_command.parse_device,
+        default="cpu",
+        help="torch device: cpu, cuda or cuda:N (cpu)",
+    )
     demo.add_argument(
         "--out", type=Path, default=Path("dego-demo"), help="output folder (./dego-demo)"
     )
     demo.add_argument("--no-pictures", action="store_true", help="skip the pictures")
+    demo.set_defaults(command_parser=demo)
 
     default, quick_study = StudyConfig(), QUICK_STUDY
     study = commands.add_parser(
@@ -179,9 +219,15 @@ def build_parser() -> argparse.ArgumentParser:
         type=_int_list,
         help=f"total Gaussians per fit, e.g. 1000,3000 ({_format_ints(default.budgets)})",
     )
-    study.add_argument("--frames", type=int, help=f"frames per clip ({default.frames})")
     study.add_argument(
-        "--iterations", type=int, help=f"optimiser steps per fit ({default.iterations})"
+        "--frames",
+        type=_bounded_int(2, MAX_DEMO_FRAMES),
+        help=f"frames per clip, 2-{MAX_DEMO_FRAMES} ({default.frames})",
+    )
+    study.add_argument(
+        "--iterations",
+        type=_bounded_int(0, MAX_ITERATIONS),
+        help=f"optimiser steps per fit, 0-{MAX_ITERATIONS:,} ({default.iterations})",
     )
     study.add_argument(
         "--variants",
@@ -197,33 +243,88 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, default=Path("dego-study"), help="output folder (./dego-study)"
     )
     study.add_argument("--no-pictures", action="store_true", help="skip the plot")
-    eval_command.add_arguments(
-        commands.add_parser(
-            "eval",
-            help="score Occ3D-nuScenes predictions: mIoU, IoU, InsM/ScnM/HCM, RayIoU",
-            description=eval_command.DESCRIPTION,
-            epilog=eval_command.EPILOG,
-        )
+    study.set_defaults(command_parser=study)
+    evaluation = commands.add_parser(
+        "eval",
+        help="score Occ3D-nuScenes predictions: mIoU, IoU, InsM/ScnM/HCM, RayIoU",
+        description=eval_command.DESCRIPTION,
+        epilog=eval_command.EPILOG,
     )
+    eval_command.add_arguments(evaluation)
+    evaluation.set_defaults(command_parser=evaluation)
     return parser
 
 
+def _int(text: str) -> int:
+    """An int argument (a ValueError for anything else, argparse names the flag)."""
+    if not re.fullmatch(r"\s*[+-]?\d+\s*", text):
+        raise argparse.ArgumentTypeError(f"expected an int, got {text!r}")
+    return int(text)
+
+
+def _bounded_int(low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an int in ``[low, high]``."""
+
+    def parse(text: str) -> int:
+        value = _int(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an int in [{low}, {high}], got {text!r}")
+        return value
+
+    parse.__name__ = "int"
+    return parse
+
+
+def _seed(text: str) -> int:
+    """A seed: an int in ``[0, MAX_SEED]``."""
+    value = _int(text)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected a seed in [0, {MAX_SEED}], got {text!r}")
+    return value
+
+
+def _repeated(values: tuple) -> list:
+    """The values that occur more than once, in order of first appearance."""
+    return sorted({v for v in values if values.count(v) > 1}, key=values.index)
+
+
 def _name_list(text: str) -> tuple[str, ...]:
-    """``"static,rigid"`` -> ``("static", "rigid")``."""
-    return tuple(part.strip() for part in text.split(",") if part.strip())
+    """``"static,rigid"`` -> ``("static", "rigid")``; empty or repeated names are refused."""
+    names = tuple(part.strip() for part in text.split(",") if part.strip())
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected at least one name, got {text!r}")
+    repeated = _repeated(names)
+    if repeated:
+        raise argparse.ArgumentTypeError(
+            f"{', '.join(repeated)} repeated in {text!r}; each runs once"
+        )
+    return names
 
 
 def _int_list(text: str) -> tuple[int, ...]:
-    """``"0-7"`` or ``"0,3,5"`` -> a tuple of ints."""
-    try:
-        if "-" in text.strip("-"):
-            low, high = text.split("-")
-            return tuple(range(int(low), int(high) + 1))
-        return tuple(int(part) for part in text.split(","))
-    except ValueError:
+    """``"0-7"``, ``"0,3,5"`` or ``"0-3,8"`` -> a tuple of non-negative ints, each once
+    and at most :data:`MAX_LIST_VALUES` of them (counted before any is made)."""
+    ranges = []
+    for part in text.split(","):
+        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
+        if match is None:
+            raise argparse.ArgumentTypeError(
+                f"expected non-negative integers like 0-7, 0,3,5 or 0-3,8, got {text!r}"
+            )
+        low = int(match[1])
+        high = low if match[2] is None else int(match[2])
+        if high < low:
+            raise argparse.ArgumentTypeError(f"the range {part.strip()!r} is empty")
+        ranges.append((low, high))
+    if sum(high - low + 1 for low, high in ranges) > MAX_LIST_VALUES:
+        raise argparse.ArgumentTypeError(f"at most {MAX_LIST_VALUES} values, got {text!r}")
+    values = tuple(v for low, high in ranges for v in range(low, high + 1))
+    repeated = _repeated(values)
+    if repeated:
         raise argparse.ArgumentTypeError(
-            f"expected integers like 0-7 or 0,3,5, got {text!r}"
-        ) from None
+            f"{', '.join(map(str, repeated))} repeated in {text!r}; each value runs once"
+        )
+    return values
 
 
 def _format_ints(values: tuple[int, ...]) -> str:
@@ -232,8 +333,11 @@ def _format_ints(values: tuple[int, ...]) -> str:
     return ",".join(map(str, values))
 
 
-def study_main(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    """``dego study``: run the study and write its report."""
+def study_main(
+    args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
+) -> int:
+    """``dego study``: check the flags, create ``--out``, run the study, write its report.
+    ``created``: where the folders made for ``--out`` are recorded."""
     base = QUICK_STUDY if args.quick else StudyConfig()
     changes = {
         name: getattr(args, name)
@@ -243,7 +347,9 @@ def study_main(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
     try:
         config = dataclasses.replace(base, **changes)
     except ValueError as error:
-        parser.error(f"--{str(error).split(':')[0].replace('_', '-')}: {error}")
+        field, _, message = str(error).partition(": ")
+        parser.error(f"--{field.replace('_', '-')}: {message or error}")
+    created += _output_dir(parser, "--out", args.out)
     runs = len(config.seeds) * len(config.budgets) * len(config.variants)
     print(
         f"dego {__version__} study: {runs} fits (seeds {_format_ints(config.seeds)}, budgets "
@@ -257,7 +363,12 @@ def study_main(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
         done.append(line)
         print(f"[{len(done)}/{runs} {time.perf_counter() - start:.0f} s] {line}", flush=True)
 
-    results = run_study(config, progress=progress)
+    try:
+        results = run_study(config, progress=progress)
+    except ValueError as error:
+        if not str(error).startswith("num_gaussians: "):
+            raise
+        raise UsageError("--budgets", str(error).removeprefix("num_gaussians: ")) from None
     report, paths = write_study(results, config, args.out, pictures=not args.no_pictures)
     print(report)
     print(f"wrote {', '.join(str(p) for p in paths)}")
@@ -266,26 +377,89 @@ def study_main(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``dego`` console script."""
+    """Entry point of the ``dego`` console script.
+
+    Every flag is checked, and the output folder created, before any work starts: a bad
+    value is a usage error (exit status 2, one ``error:`` line naming the flag). Ctrl-C
+    ends any command with exit status 130 and one line, ``dego: interrupted``, on
+    stderr; the outputs are written all or nothing at the end, and output folders the
+    command made itself are removed again when it ends without filling them."""
+    created: list[Path] = []
+    try:
+        code = _dispatch(argv, created)
+    except KeyboardInterrupt:
+        with _SigintIgnored():  # a second Ctrl-C does not cut the cleanup short
+            remove_empty_dirs(created)
+            print(("\n" if _isatty(sys.stderr) else "") + "dego: interrupted", file=sys.stderr)
+        return INTERRUPTED_STATUS
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
+    if code != 0:
+        remove_empty_dirs(created)
+    return code
+
+
+def _dispatch(argv: list[str] | None, created: list[Path]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command == "study":
-        return study_main(args, parser)
-    if args.command == "eval":
-        return eval_command.run(args)
+    command_parser: argparse.ArgumentParser = args.command_parser
+    try:
+        if args.command == "study":
+            return study_main(args, command_parser, created)
+        if args.command == "eval":
+            return eval_command.run(args, created=created)
+        return demo_main(args, command_parser, created)
+    except UsageError as error:
+        command_parser.error(str(error))
+
+
+def demo_main(
+    args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
+) -> int:
+    """``dego demo``: check the flags, create ``--out``, run the demo."""
     budget = dict(BUDGETS["quick" if args.quick else "full"])
     for name in budget:
         if getattr(args, name) is not None:
             budget[name] = getattr(args, name)
-    for name, low in [("frames", 1), ("iterations", 0), ("gaussians", 1)]:
-        if budget[name] < low:
-            parser.error(f"--{name}: expected an int >= {low}, got {budget[name]}")
-    try:
-        device = torch.device(args.device)
-        torch.empty(0, device=device)
-    except (RuntimeError, AssertionError) as error:
-        parser.error(f"--device: {args.device!r} is not usable here ({error})")
+    most = max_gaussians(budget["frames"])
+    if budget["gaussians"] > most:
+        parser.error(
+            f"--gaussians: expected at most {most} for {budget['frames']} frame(s) (one per "
+            f"camera pixel of the clip), got {budget['gaussians']}"
+        )
+    created += _output_dir(parser, "--out", args.out)
+    device = torch.device(args.device)
     return run_demo(args.seed, budget, device, args.out, pictures=not args.no_pictures)
+
+
+def _output_dir(parser: argparse.ArgumentParser, flag: str, path: Path) -> list[Path]:
+    """Create the output folder ``path`` of ``flag`` or exit with a usage error; returns
+    the folders made."""
+    try:
+        return make_output_dir(path)
+    except OSError as error:
+        parser.error(f"{flag}: {error.strerror or error}")
+
+
+def _isatty(stream: TextIO) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+class _SigintIgnored:
+    """Ignore SIGINT inside the block (main thread only), then restore the handler."""
+
+    def __enter__(self) -> None:
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
 
 
 LIFTED_ROW = row_name("lifted-labels")
@@ -325,7 +499,8 @@ def _learns_mask(result: FitResult) -> bool:
 def run_demo(
     seed: int, budget: dict[str, int], device: torch.device, out: Path, *, pictures: bool = True
 ) -> int:
-    """Run the demo and write ``results.md``, ``results.json`` and pictures to ``out``."""
+    """Run the demo and write ``results.md``, ``results.json`` and pictures to ``out``,
+    all or nothing (a failure leaves the previous run's files as they were)."""
     print(
         f"dego {__version__} demo: seed {seed}, {budget['frames']} frames x 6 cameras, "
         f"{budget['gaussians']} Gaussians, {budget['iterations']} iterations per variant, "
@@ -341,7 +516,12 @@ def run_demo(
     config = FitConfig(
         iterations=budget["iterations"], num_gaussians=budget["gaussians"], seed=seed
     )
-    initial = initial_model(clip, config, torch.Generator().manual_seed(seed))
+    try:
+        initial = initial_model(clip, config, torch.Generator().manual_seed(seed))
+    except ValueError as error:  # more Gaussians than the clip has surface pixels
+        if not str(error).startswith("num_gaussians: "):
+            raise
+        raise UsageError("--gaussians", str(error).removeprefix("num_gaussians: ")) from None
     labels = {
         LIFTED_ROW: lifted_clip_labels(clip),
         "initial": predict_clip(initial, None, clip),
@@ -369,10 +549,10 @@ def run_demo(
             + ", ".join(f"{group} {value:.3f}" for group, value in summary.items())
         )
 
-    out.mkdir(parents=True, exist_ok=True)
-    written = list(_write_results(out, table, gains, scores, seconds, masks, seed, budget, device))
-    if pictures:
-        written += _write_pictures(out, clip, labels, results)
+    drawn = _pictures(out, clip, labels, results) if pictures else {}
+    written = _write_results(
+        out, table, gains, scores, seconds, masks, seed, budget, device, pictures=drawn
+    )
     print(f"wrote {', '.join(str(path) for path in written)}")
     print(f"total {time.perf_counter() - start:.1f} s")
     return 0
@@ -396,7 +576,11 @@ def _write_results(
     seed: int,
     budget: dict[str, int],
     device: torch.device,
-) -> tuple[Path, Path]:
+    *,
+    pictures: Mapping[Path, bytes] | None = None,
+) -> list[Path]:
+    """Write ``results.md``, ``results.json`` and the encoded ``pictures`` (path: PNG
+    bytes) to ``out``, all or nothing (:func:`dego._atomic.write_files`); return the paths."""
     settings = {"seed": seed, **budget, "device": str(device), "dego": __version__}
     rows = {name: _json_floats(score.row()) for name, score in scores.items()}
     payload = {
@@ -406,10 +590,7 @@ def _write_results(
         "gains_over_static": gains,
         "rigidity_mask": {variant: _json_floats(summary) for variant, summary in masks.items()},
     }
-    json_path = out / "results.json"
-    json_path.write_text(json.dumps(payload, indent=2) + "\n")
-    path = out / "results.md"
-    path.write_text(
+    markdown = (
         "# dego demo\n\n"
         + ", ".join(f"{key} {value}" for key, value in settings.items())
         + "\n\n"
@@ -426,39 +607,42 @@ def _write_results(
         )
         + "\n"
     )
-    return path, json_path
+    files: dict[Path, str | bytes] = {
+        out / "results.md": markdown,
+        out / "results.json": json.dumps(payload, indent=2) + "\n",
+        **(pictures or {}),
+    }
+    return write_files(files)
 
 
 def _json_floats(values: dict[str, float]) -> dict[str, float | None]:
     return {key: (None if math.isnan(value) else value) for key, value in values.items()}
 
 
-def _write_pictures(
+def _pictures(
     out: Path, clip: DemoClip, labels: dict[str, torch.Tensor], results: list[FitResult]
-) -> list[Path]:
+) -> dict[Path, bytes]:
+    """The demo's pictures, ``path: PNG bytes`` (written with the results)."""
     try:
         import matplotlib  # noqa: F401
 
-        from dego.demo.pictures import bev_picture, camera_picture, loss_picture
+        from dego.demo.pictures import bev_figure, camera_figure, loss_figure, png_bytes
     except ImportError:
         print('pictures skipped: they need matplotlib (pip install "dego-occupancy[viz]")')
-        return []
+        return {}
     last = clip.num_frames - 1
-    pictured = [r for r in results if r.variant in PICTURED_VARIANTS]
-    paths = [
-        bev_picture(
-            labels[row_name(r.variant)][last],
-            clip,
-            row_name(r.variant),
-            out / f"bev_{r.variant}.png",
-            last,
+    pictures = {
+        out / f"bev_{r.variant}.png": png_bytes(
+            bev_figure(labels[row_name(r.variant)][last], clip, row_name(r.variant), last)
         )
-        for r in pictured
-    ]
+        for r in results
+        if r.variant in PICTURED_VARIANTS
+    }
     fitted = [r for r in results if r.variant in VARIANTS]
-    paths += [camera_picture(r, clip, out / f"camera_{r.variant}.png") for r in fitted]
-    paths.append(loss_picture(fitted, out / "losses.png"))
-    return paths
+    for r in fitted:
+        pictures[out / f"camera_{r.variant}.png"] = png_bytes(camera_figure(r, clip))
+    pictures[out / "losses.png"] = png_bytes(loss_figure(fitted))
+    return pictures
 
 
 if __name__ == "__main__":

@@ -739,8 +739,12 @@ class DecoupledDeformation(nn.Module):
                 added. With the default ``""`` every key must belong to the module.
             strict: ``True``: any missing, unexpected or mis-shaped key (or a frequency
                 buffer that is not ``2^k``) raises :class:`StateDictMismatchError` listing
-                them all. ``False``: load the keys that fit and warn (``UserWarning``) with
-                the list of the others; parameters not loaded keep their initialisation.
+                them (up to 20 of each kind, then a count). ``False``: load the keys that
+                fit and warn (``UserWarning``) with the list of the others; parameters not
+                loaded keep their initialisation. Whatever ``strict`` is, the key set is
+                checked before anything is built: when ``depth`` is inferred, the
+                ``feature_net`` layer indices must have no gaps and give a depth of at
+                most 64 (pass ``depth=`` to load a deeper network).
             kwargs: other :class:`DecoupledDeformation` arguments (``time_scale``,
                 ``pos_scale``, ``fixed_mask``, ``loss_weights``, ``chunk_rows``, the sizes
                 above); ``preset`` may only be ``"official"``. The defaults reproduce the

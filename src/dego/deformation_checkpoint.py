@@ -7,6 +7,7 @@ The key mapping, size inference and mismatch reporting behind
 
 from __future__ import annotations
 
+import math
 import re
 import warnings
 from collections.abc import Mapping
@@ -16,6 +17,7 @@ import torch
 from torch import Tensor
 
 from dego._checks import check_int
+from dego._policy import check_memory
 
 if TYPE_CHECKING:
     from dego.deformation import DecoupledDeformation
@@ -38,6 +40,19 @@ _OFFICIAL_HEADS = {
     "opacity_head": "heads.opacity",
 }
 _OFFICIAL_BUFFERS = ("pos_enc_freqs", "time_enc_freqs")
+_HEAD_OUTPUTS = {  # official head -> its output width
+    "rigid_mask_head": 1,
+    "position_head": 3,
+    "rotation_head": 4,
+    "scale_head": 3,
+    "opacity_head": 1,
+}
+_LAYER = re.compile(r"feature_net\.(\d+)\.\w+")
+# The deepest feature net inferred from the keys (the released network has 6 layers);
+# a deeper one loads with an explicit depth.
+_MAX_INFERRED_DEPTH = 64
+_LISTED = 20  # keys listed per kind of mismatch; the rest are counted
+_KEY_CHARS = 120  # longer keys are cut in messages
 
 
 class StateDictMismatchError(KeyError, ValueError):
@@ -127,6 +142,66 @@ def _infer_official_sizes(
         sizes["feature_dim"] = 256  # the released config's
         unknown.append("feature_dim")
     return sizes, unknown
+
+
+def _official_shapes(sizes: Mapping[str, int]) -> dict[str, tuple[int, ...]]:
+    """The official module's state-dict shapes for ``sizes``, in its order, computed
+    without building anything (``official_tensors`` of the module with these sizes)."""
+    f, h, d = sizes["feature_dim"], sizes["hidden_dim"], sizes["depth"]
+    t, p, q = sizes["time_dim"], sizes["pos_levels"], sizes["time_levels"]
+    g = sizes.get("head_hidden", h)
+    shapes: dict[str, tuple[int, ...]] = {"pos_enc_freqs": (p,), "time_enc_freqs": (q,)}
+    for i, (rows, cols) in ((0, (t, 2 * q + 1)), (2, (t, t))):
+        shapes |= {f"time_embed.{i}.weight": (rows, cols), f"time_embed.{i}.bias": (rows,)}
+    shapes["feature_net.0.weight"] = (h, f + 3 * (2 * p + 1) + t)
+    shapes["feature_net.0.bias"] = (h,)
+    for j in range(1, d):
+        shapes |= {f"feature_net.{2 * j}.weight": (h, h), f"feature_net.{2 * j}.bias": (h,)}
+    for head, k in _HEAD_OUTPUTS.items():
+        shapes |= {f"{head}.0.weight": (g, h), f"{head}.0.bias": (g,)}
+        shapes |= {f"{head}.2.weight": (k, g), f"{head}.2.bias": (k,)}
+    return shapes
+
+
+def _short(key: str) -> str:
+    return key if len(key) <= _KEY_CHARS else key[:_KEY_CHARS] + "..."
+
+
+def _listing(items: list[str], sep: str = ", ") -> str:
+    """The first ``_LISTED`` items, then how many more."""
+    shown = sep.join(items[:_LISTED])
+    more = len(items) - _LISTED
+    return shown + (f"{sep}... and {more} more" if more > 0 else "")
+
+
+def _check_layers(given: Mapping[str, Any], depth: int) -> None:
+    """The feature net's layer indices in ``given`` must be exactly ``0, 2, ..., 2(depth -
+    1)`` for the ``depth`` inferred from them (the largest), which must be at most
+    ``_MAX_INFERRED_DEPTH``: one stray key must not make a 100,000-layer module."""
+    found: dict[int, str] = {}
+    for key in given:
+        if match := _LAYER.fullmatch(key):
+            index = int(match.group(1))
+            found[index] = min(found.get(index, key), key)
+    if not found:
+        return
+    top = max(found)
+    advice = "pass depth=... explicitly to load such a network"
+    if depth > _MAX_INFERRED_DEPTH:
+        raise StateDictMismatchError(
+            f"state_dict: {_short(found[top])} implies a feature net of depth {depth} "
+            f"(Linear layers feature_net.0, .2, ..., .{2 * (depth - 1)}), above "
+            f"{_MAX_INFERRED_DEPTH}, the deepest inferred from the keys (the released "
+            f"network has 6); {advice}"
+        )
+    layers = sorted(found)
+    if layers != list(range(0, 2 * depth, 2)):
+        shown = _listing([str(index) for index in layers])
+        raise StateDictMismatchError(
+            f"state_dict: feature_net: layer indices [{shown}] are not 0, 2, ..., {top} "
+            "(Linear layers sit at even indices, without gaps), so the depth cannot be "
+            f"inferred from them; {advice} (absent layers are then missing keys)"
+        )
 
 
 def _prefix_hint(state_dict: Mapping[str, Any], prefix: str) -> str:
@@ -237,6 +312,7 @@ def load_official_state_dict(
         for key, value in state_dict.items()
         if isinstance(key, str) and key.startswith(prefix)
     }
+    depth_inferred = "depth" not in kwargs
     sizes, unknown = _infer_official_sizes(given, kwargs)
     if sizes.get("head_hidden", sizes["hidden_dim"]) != sizes["hidden_dim"]:
         raise ValueError(
@@ -244,31 +320,49 @@ def load_official_state_dict(
             f"got head_hidden={sizes['head_hidden']}"
         )
     sizes["head_hidden"] = sizes["hidden_dim"]
-    module = cls(**sizes, preset="official", **kwargs)  # type: ignore[arg-type]
-    expected = official_tensors(module)
+    # Everything below is checked on the keys and shapes alone; the module is built last,
+    # once its size is known to be sane.
+    for name, low in [
+        ("feature_dim", 0),
+        ("pos_levels", 0),
+        ("time_levels", 0),
+        ("time_dim", 1),
+        ("hidden_dim", 1),
+        ("depth", 1),
+    ]:
+        check_int(name, sizes[name], low)
+    if depth_inferred:
+        _check_layers(given, sizes["depth"])
+    expected = _official_shapes(sizes)
+    count = sum(math.prod(shape) for shape in expected.values())
+    check_memory(
+        "from_official_state_dict",
+        12 * count,  # float32 parameters, then a copy in the state dict's dtype
+        f"{count} parameters: depth {sizes['depth']}, hidden_dim {sizes['hidden_dim']}",
+    )
 
     missing = [key for key in expected if key not in given]
     unexpected = [key for key in given if key not in expected]
     problems: dict[str, str] = {}  # official key -> what is wrong with its value
-    for key in expected:
+    for key, want in expected.items():
         if key not in given:
             continue
         value = given[key]
-        want = tuple(expected[key].shape)
         if not isinstance(value, Tensor) or not value.is_floating_point():
             got = type(value).__name__ if not isinstance(value, Tensor) else value.dtype
             problems[key] = f"expected a floating-point tensor, got {got}"
         elif tuple(value.shape) != want:
             problems[key] = f"shape {tuple(value.shape)}, expected {want}"
-        elif key in _OFFICIAL_BUFFERS and not torch.equal(
-            value.detach().cpu().double(), expected[key].detach().cpu().double()
-        ):
-            problems[key] = (
-                f"expected the frequencies 2^k = {expected[key].tolist()}, got {value.tolist()}"
-            )
+        elif key in _OFFICIAL_BUFFERS:
+            powers = 2.0 ** torch.arange(want[0], dtype=torch.float64)
+            if not torch.equal(value.detach().cpu().double(), powers):
+                want_text, got_text = (
+                    _listing(list(map(str, v.tolist()))) for v in (powers, value)
+                )
+                problems[key] = f"expected the frequencies 2^k = [{want_text}], got [{got_text}]"
     lines = []
     if missing:
-        lines.append(f"missing ({len(missing)}): {', '.join(prefix + k for k in missing)}")
+        lines.append(f"missing ({len(missing)}): {_listing([prefix + k for k in missing])}")
     if unexpected:
         notes = {
             key: f" ({_UNSUPPORTED_OFFICIAL[key.split('.')[0]]})"
@@ -277,12 +371,12 @@ def load_official_state_dict(
         }
         lines.append(
             f"unexpected ({len(unexpected)}): "
-            + ", ".join(prefix + k + notes.get(k, "") for k in unexpected)
+            + _listing([_short(prefix + k) + notes.get(k, "") for k in unexpected])
         )
     if problems:
         lines.append(
-            f"mis-shaped or invalid ({len(problems)}):"
-            + "".join(f"\n    {prefix}{k}: {why}" for k, why in problems.items())
+            f"mis-shaped or invalid ({len(problems)}):\n    "
+            + _listing([f"{prefix}{k}: {why}" for k, why in problems.items()], "\n    ")
         )
     if not given:
         lines.append(_prefix_hint(state_dict, prefix))
@@ -298,6 +392,7 @@ def load_official_state_dict(
             f"would fill keep their initialisation. {message}",
             stacklevel=3,
         )
+    module = cls(**sizes, preset="official", **kwargs)  # type: ignore[arg-type]
 
     # dtype and device from the first layer (else any floating tensor that fits)
     fitting = [k for k in expected if k in given and k not in problems]

@@ -19,7 +19,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from dego import _serialization
-from dego._policy import float32_under_autocast
+from dego._policy import check_dtype, float32_under_autocast
 from dego._typing import typechecked
 
 try:
@@ -106,7 +106,13 @@ def quaternions_to_rotation_matrices(
 def build_covariances(
     quats: Float[Tensor, "*batch 4"], scales: Float[Tensor, "*batch 3"]
 ) -> Float[Tensor, "*batch 3 3"]:
-    """Covariances ``R diag(s^2) R^T`` ``(*, 3, 3)`` from quats ``(*, 4)``, scales ``(*, 3)``."""
+    """Covariances ``R diag(s^2) R^T`` ``(*, 3, 3)`` from quats ``(*, 4)``, scales ``(*, 3)``.
+
+    Raises:
+        TypeError: naming ``scales`` when its dtype differs from ``quats``' (nothing is
+            promoted silently).
+    """
+    check_dtype("scales", scales, quats.dtype, "quats")
     return _gram_of_scaled_rotation(quats, scales)
 
 
@@ -119,9 +125,11 @@ def build_precisions(
     No matrix inversion: accurate and cheap even for very anisotropic Gaussians.
 
     Raises:
+        TypeError: naming ``scales`` when its dtype differs from ``quats``'.
         ValueError: naming ``scales`` when a scale is <= 0 or NaN (``1/s^2`` would be
             infinite or NaN).
     """
+    check_dtype("scales", scales, quats.dtype, "quats")
     _check_positive_scales(scales)
     return _gram_of_scaled_rotation(quats, scales.reciprocal())
 

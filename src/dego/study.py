@@ -16,15 +16,17 @@ import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from jaxtyping import Float
 from torch import Tensor
 
+from dego._atomic import write_files
 from dego._checks import check_int
 from dego.data.synthetic import SyntheticScene
-from dego.demo.clip import DEMO_FRAME_DT, DemoClip
+from dego.demo.clip import DEMO_FRAME_DT, MAX_DEMO_FRAMES, DemoClip, max_gaussians
 from dego.demo.evaluate import lifted_clip_labels, predict_clip, score_clip
-from dego.demo.fit import FitConfig, FitResult, fit_scene, rigidity_mask, row_name
+from dego.demo.fit import MAX_SEED, FitConfig, FitResult, fit_scene, rigidity_mask, row_name
 from dego.demo.offsets import agent_under
 
 STUDY_VARIANTS = (
@@ -68,11 +70,13 @@ class StudyConfig:
     """What :func:`run_study` runs (the defaults are ``dego study`` without ``--quick``).
 
     Attributes:
-        seeds: scene and fitting seeds.
-        budgets: total numbers of canonical Gaussians, one sweep point each.
-        frames: frames per clip (offsets ``-(frames // 2) ..``).
+        seeds: scene and fitting seeds, in ``[0, MAX_SEED]``, each once.
+        budgets: total numbers of canonical Gaussians, one sweep point each (each once,
+            at most :func:`~dego.demo.clip.max_gaussians` of ``frames``).
+        frames: frames per clip (offsets ``-(frames // 2) ..``), 2 to
+            :data:`~dego.demo.clip.MAX_DEMO_FRAMES`.
         iterations: optimiser steps per fit.
-        variants: a subset of :data:`STUDY_VARIANTS`.
+        variants: a subset of :data:`STUDY_VARIANTS`, each once.
         mask_prior: the mask sparsity weight of ``decoupled+prior``.
     """
 
@@ -84,13 +88,30 @@ class StudyConfig:
     mask_prior: float = 0.1
 
     def __post_init__(self) -> None:
-        if not self.seeds or not self.budgets or not self.variants:
-            raise ValueError("seeds, budgets, variants: each needs at least one value")
+        for name in ("seeds", "budgets", "variants"):
+            values = getattr(self, name)
+            if not values:
+                raise ValueError(f"{name}: expected at least one value, got {values!r}")
+            repeated = sorted({v for v in values if values.count(v) > 1}, key=values.index)
+            if repeated:
+                raise ValueError(
+                    f"{name}: {', '.join(map(str, repeated))} repeated; each value runs once"
+                )
         for seed in self.seeds:
-            check_int("seeds", seed, 0)
-        for budget in self.budgets:
-            check_int("budgets", budget, 1)
+            if check_int("seeds", seed, 0) > MAX_SEED:
+                raise ValueError(f"seeds: expected ints in [0, {MAX_SEED}], got {seed!r}")
         check_int("frames", self.frames, 2)
+        if self.frames > MAX_DEMO_FRAMES:
+            raise ValueError(
+                f"frames: expected an int in [2, {MAX_DEMO_FRAMES}], got {self.frames!r}"
+            )
+        most = max_gaussians(self.frames)
+        for budget in self.budgets:
+            if check_int("budgets", budget, 1) > most:
+                raise ValueError(
+                    f"budgets: expected ints in [1, {most}] (a {self.frames}-frame clip has "
+                    f"{most} camera pixels, one Gaussian each at most), got {budget!r}"
+                )
         check_int("iterations", self.iterations, 0)
         unknown = sorted(set(self.variants) - set(STUDY_VARIANTS))
         if unknown:
@@ -411,9 +432,16 @@ PICTURED_GAINS = ("rigid", "decoupled", "free-offsets", "true-motion")
 
 
 def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
+    """Write :func:`study_figure` to ``path`` (PNG, atomically; needs matplotlib)."""
+    from dego.demo.pictures import png_bytes
+
+    return write_files({path: png_bytes(study_figure(runs), dpi=90)})[0]
+
+
+def study_figure(runs: Sequence[StudyRun]) -> Any:
     """Articulated-agent IoU at t != 0 per variant and budget, and each variant's paired
-    gain over ``static``, with 95% intervals (needs matplotlib)."""
-    from dego.viz import _new_figure, save_figure
+    gain over ``static``, with 95% intervals: a matplotlib Figure (needs matplotlib)."""
+    from dego.viz import _new_figure
 
     summary = summarise(runs)
     figure = _new_figure((10.0, 3.6))
@@ -452,28 +480,32 @@ def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
     if gains:
         right.legend(fontsize=6)
     right.set_title("articulated t != 0, paired by seed, 95% CI", fontsize=9)
-    return save_figure(figure, path, dpi=90)
+    return figure
 
 
 def write_study(
     runs: Sequence[StudyRun], config: StudyConfig, out: Path, *, pictures: bool = True
 ) -> tuple[str, list[Path]]:
-    """Write ``study.md``, ``study.json`` and (with matplotlib) ``study.png`` to ``out``;
-    return the Markdown report and the paths."""
+    """Write ``study.md``, ``study.json`` and (with matplotlib) ``study.png`` to ``out``,
+    all or nothing (:func:`dego._atomic.write_files`: a failure leaves the previous files
+    as they were); return the Markdown report and the paths."""
     import json
 
-    out.mkdir(parents=True, exist_ok=True)
     text, payload = study_report(runs, config)
-    paths = [out / "study.md", out / "study.json"]
-    paths[0].write_text(text)
-    paths[1].write_text(json.dumps(_json_safe(payload), indent=1) + "\n")
+    files: dict[Path, str | bytes] = {
+        out / "study.md": text,
+        out / "study.json": json.dumps(_json_safe(payload), indent=1) + "\n",
+    }
     if pictures:
         try:
             import matplotlib  # noqa: F401
         except ImportError:
-            return text, paths
-        paths.append(study_picture(runs, out / "study.png"))
-    return text, paths
+            pass
+        else:
+            from dego.demo.pictures import png_bytes
+
+            files[out / "study.png"] = png_bytes(study_figure(runs), dpi=90)
+    return text, write_files(files)
 
 
 def _json_safe(value: object) -> object:

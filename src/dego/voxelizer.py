@@ -562,7 +562,9 @@ def _voxelize(
     log_normaliser = (-1.5 * math.log(2 * math.pi) - scales.log().sum(-1)).clamp(-bound, bound)
 
     if config.neighborhood == "cube":
-        precision = _gram_of_scaled_rotation(quats, scales.reciprocal())
+        # float64 from the input-dtype quats and scales: in float32 the rounding of these
+        # entries is the largest error of the cube on grids whose centres are exact
+        precision = _gram_of_scaled_rotation(quats.double(), scales.double().reciprocal())
         rows, cols = (0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)  # xx, yy, zz, xy, xz, yz
         precision6 = precision[:, rows, cols]
         out = _voxelize_cube(
@@ -631,9 +633,8 @@ def _voxelize_boxes(
     dtype, device = means.dtype, means.device
     channels = features.shape[-1]
     kernel = _Kernel.of(config)
-    grad_needed = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (means, whitening, opacities, features, log_normaliser)
-    )
+    differentiable = _requiring_grad(means, whitening, opacities, features, log_normaliser)
+    grad_needed = bool(differentiable)
     low, high = boxes
     with torch.no_grad():
         extent = (high - low + 1).clamp(min=0)  # (M, 3)
@@ -677,7 +678,14 @@ def _voxelize_boxes(
         density.index_add_(0, voxel, terms[0])
         accumulated.index_add_(0, voxel, terms[1])
         weights.index_add_(0, voxel, terms[2])
-    return _finish(density, accumulated, weights, kernel, config, (b, x, y, z))
+    return _finish(density, accumulated, weights, kernel, config, (b, x, y, z), differentiable)
+
+
+def _requiring_grad(*inputs: Tensor) -> tuple[Tensor, ...]:
+    """The inputs that require grad, none when grad mode is off."""
+    if not torch.is_grad_enabled():
+        return ()
+    return tuple(t for t in inputs if t.requires_grad)
 
 
 def _finish(
@@ -687,9 +695,15 @@ def _finish(
     kernel: _Kernel,
     config: VoxelizerConfig,
     shape: tuple[int, ...],
+    differentiable: tuple[Tensor, ...],  # the inputs requiring grad (empty: no link)
 ) -> VoxelOutput:
     """Density from its sum; features ``empty_value`` where ``W <= empty_threshold``, else
-    ``sum w f`` (additive) or ``sum w f / W`` (probabilistic)."""
+    ``sum w f`` (additive) or ``sum w f / W`` (probabilistic).
+
+    An output that no pair reached (no Gaussians, no (Gaussian, voxel) pair, B = 0) is still
+    linked to every input in ``differentiable``, by an exact zero: it requires grad
+    whenever an input does, and backward gives zero gradients.
+    """
     reached = (weights > config.empty_threshold).unsqueeze(-1)
     if kernel.probabilistic:
         density = -torch.expm1(density)  # 1 - prod(1 - x), accurate for small densities
@@ -698,6 +712,11 @@ def _finish(
     else:
         density = density.clamp(0, 1)
     accumulated = torch.where(reached, accumulated, float(config.empty_value))
+    if differentiable and not (density.requires_grad and accumulated.requires_grad):
+        # a sum over no element: exactly 0 (whatever the values), zero gradient to each input
+        zero = sum((t.flatten()[:0].sum() for t in differentiable), density.new_zeros(()))
+        density = density if density.requires_grad else density + zero
+        accumulated = accumulated if accumulated.requires_grad else accumulated + zero
     return VoxelOutput(
         density=density.view(*shape), features=accumulated.view(*shape, accumulated.shape[-1])
     )
@@ -705,26 +724,28 @@ def _finish(
 
 def _cube_quadratics(
     means: Tensor,  # (n, 3)
-    precisions: Tensor,  # (n, 6): xx, yy, zz, xy, xz, yz
+    precisions: Tensor,  # (n, 6) float64: xx, yy, zz, xy, xz, yz
     cell: Tensor,  # (n, 3) long, voxel index of each mean (may be off-grid)
-    axis_centres: tuple[Tensor, Tensor, Tensor],  # the grid's voxel centres along x, y, z
+    axis_centres: tuple[Tensor, Tensor, Tensor],  # float64 voxel centres along x, y, z
     r: Tensor,  # (K,) offsets -nbh..nbh
     reach: tuple[float, float, float],  # (nbh + 1) voxels per axis, metres
 ) -> Tensor:
     """``(n, K, K, K)`` float64 quadratics ``d^T P d`` over each Gaussian's cube.
 
-    ``d`` is formed per axis as (the grid's centre) - (mean) in the input dtype, exactly the
-    official code's ``d``; the quadratic form is then separable into (n, K) and (n, K, K)
-    terms broadcast together, so nothing is gathered per (Gaussian, voxel) pair. Off-grid
-    cube cells get clamped (meaningless) values: the caller drops them. ``d`` is clamped
-    to ``+-reach``, which no in-grid cell of the cube exceeds, so far means cannot
-    overflow the products (or their gradients).
+    ``d`` is formed per axis in float64, as (the grid's float64 centre) - (mean): the
+    official code forms it in float32, where ``lower + (i + 0.5) * voxel`` is up to 4.6e-6 m
+    off on the Occ3D grid (0.4 is no float32 number) and the difference of two numbers
+    near 40 m loses another ~2e-6 m; those two dominate its float32 error. The quadratic
+    form is then separable into (n, K) and (n, K, K) terms broadcast together, so nothing
+    is gathered per (Gaussian, voxel) pair. Off-grid cube cells get clamped (meaningless)
+    values: the caller drops them. ``d`` is clamped to ``+-reach``, which no in-grid cell of
+    the cube exceeds, so far means cannot overflow the products (or their gradients).
     """
     d = []
     for a, centres in enumerate(axis_centres):
         index = (cell[:, a, None] + r).clamp(0, centres.shape[0] - 1)
-        offset = (centres[index] - means[:, a, None]).clamp(-reach[a], reach[a])
-        d.append(offset.double())
+        offset = centres[index] - means[:, a, None].double()
+        d.append(offset.clamp(-reach[a], reach[a]))
     dx, dy, dz = d
     p = precisions.double()
     xy = p[:, 0, None, None] * (dx * dx)[:, :, None] + p[:, 1, None, None] * (dy * dy)[:, None]
@@ -769,7 +790,7 @@ def _voxelize_cube(
     bn: tuple[int, int],
     grid: VoxelGrid,
     means: Tensor,  # (M, 3)
-    precision6: Tensor,  # (M, 6)
+    precision6: Tensor,  # (M, 6) float64
     opacities: Tensor,  # (M,)
     features: Tensor,  # (M, C)
     log_normaliser: Tensor,  # (M,)
@@ -788,9 +809,8 @@ def _voxelize_cube(
     r = torch.arange(-config.nbh, config.nbh + 1, device=device)
     cube_size = r.shape[0] ** 3
     per_chunk = max(1, config.chunk_size // cube_size)
-    grad_needed = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (means, precision6, opacities, features, log_normaliser)
-    )
+    differentiable = _requiring_grad(means, precision6, opacities, features, log_normaliser)
+    grad_needed = bool(differentiable)
     _check_size(
         b,
         grid,
@@ -806,9 +826,12 @@ def _voxelize_cube(
     shape = torch.tensor(grid.shape, device=device)
     offsets = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
     offsets_flat = (offsets[:, 0] * y + offsets[:, 1]) * z + offsets[:, 2]
-    # the same float operations as the grid's own centres (and the official code's)
+    # float64 centres (the grid's own, lower + (i + 0.5) * voxel, in float64); the home voxel
+    # below stays the official float32 floor((mu - lower) / voxel)
+    lower64, size64, _ = _grid_float64(grid, device)
     axis_centres = tuple(
-        lower[a] + (torch.arange(grid.shape[a], device=device, dtype=dtype) + 0.5) * size[a]
+        lower64[a]
+        + (torch.arange(grid.shape[a], device=device, dtype=torch.float64) + 0.5) * size64[a]
         for a in range(3)
     )
     reach = tuple((config.nbh + 1) * v for v in grid.voxel_size)
@@ -870,7 +893,7 @@ def _voxelize_cube(
         density.index_add_(0, voxel, terms[0])
         accumulated.index_add_(0, voxel, terms[1])
         weights.index_add_(0, voxel, terms[2])
-    return _finish(density, accumulated, weights, kernel, config, (b, x, y, z))
+    return _finish(density, accumulated, weights, kernel, config, (b, x, y, z), differentiable)
 
 
 class GaussianVoxelizer(nn.Module):

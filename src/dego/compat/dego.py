@@ -18,7 +18,7 @@ from torch import Tensor
 
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
-from dego.compat.gsplat import _DEPTH_MODES, RenderMode, _radius_rule
+from dego.compat.gsplat import _DEPTH_MODES, RenderMode, _release_options
 from dego.gaussians import GaussianSet
 from dego.splatting.splatter import ImageSize, SplatConfig, render_channels_last
 from dego.voxelizer import VoxelOutput
@@ -68,7 +68,8 @@ def render_temporal(
         near_plane: cull Gaussians whose camera z is below this.
         far_plane: cull Gaussians whose camera z is above this.
         eps2d: screen-space dilation of the 2D covariance (pixels^2).
-        gsplat_version: the gsplat release whose radius rule to follow (DeGO pins 1.4.0).
+        gsplat_version: the gsplat release whose radius rule and max alpha to follow (DeGO
+            pins 1.4.0).
 
     Returns:
         ``[B, T*V, H, W, X]`` channels-last, time-major (index ``t * V + v``), ``X = C``,
@@ -116,7 +117,7 @@ def render_temporal(
         far=far_plane,
         eps2d=eps2d,
         depth_mode=_DEPTH_MODES[mode],  # type: ignore[arg-type]
-        radius_rule=_radius_rule(gsplat_version),  # type: ignore[arg-type]
+        **_release_options(gsplat_version),
     )
     image, _, _ = render_channels_last(
         flat,

@@ -4,7 +4,8 @@ Code written for gsplat (``from gsplat import rasterization``) runs unchanged wi
 ``from dego.compat.gsplat import rasterization``, on CPU as well as CUDA. Both input
 layouts are accepted: gsplat >= 1.5's batched ``means [..., N, 3]``, ``viewmats
 [..., C, 4, 4]`` and gsplat <= 1.4's unbatched ``means [N, 3]``, ``viewmats [C, 4, 4]``.
-``gsplat_version`` picks the radius rule (and ``meta["radii"]``'s shape) of that release.
+``gsplat_version`` picks the radius rule (and ``meta["radii"]``'s shape) and the compositing
+constants (max alpha 0.99 from 1.6, 0.999 before) of that release.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from torch import Tensor
 
 from dego._policy import float32_under_autocast
 from dego.gaussians import GaussianSet
+from dego.splatting import gsplat_backend
 from dego.splatting.projection import Projection
 from dego.splatting.splatter import SplatConfig, render_channels_last
 
@@ -58,18 +60,25 @@ def _is_default(name: str, value: Any) -> bool:
     return bool(value == default)
 
 
-def _radius_rule(gsplat_version: str) -> str:
+def _release(gsplat_version: str) -> tuple[int, int]:
+    """``(1, minor)`` of a gsplat 1.x release string such as ``"1.5.3"``."""
     parts = str(gsplat_version).split(".")
     try:
         major, minor = int(parts[0]), int(parts[1]) if len(parts) > 1 else 0
     except ValueError:
         major, minor = -1, -1
-    if major != 1:
+    if major != 1 or minor < 0:
         raise ValueError(
             f"gsplat_version: expected a gsplat 1.x release such as '1.4' or '1.5.3', "
             f"got {gsplat_version!r}"
         )
-    return "gsplat>=1.5" if minor >= 5 else "gsplat<=1.4"
+    return major, minor
+
+
+def _release_options(gsplat_version: str) -> dict[str, Any]:
+    """The SplatConfig fields a gsplat release fixes: its radius rule and compositing constants."""
+    release = _release(gsplat_version)
+    return {"radius_rule": gsplat_backend.rule_of(release), **gsplat_backend.constants_of(release)}
 
 
 def _check_shape(name: str, tensor: Any, expected: tuple[int | str, ...]) -> None:
@@ -148,7 +157,8 @@ def rasterization(
         camera_model: must be ``"pinhole"``.
         gsplat_version: the gsplat release whose rules to follow: below 1.5 one radius
             per Gaussian (``meta["radii"]`` ``[..., C, N]``), from 1.5 per-axis,
-            opacity-aware radii (``[..., C, N, 2]``). Default: the newest, 1.5.
+            opacity-aware radii (``[..., C, N, 2]``); from 1.6 alpha is capped at 0.99
+            (0.999 before). Default: 1.5, the newest release on PyPI.
         **rest: gsplat's other keywords: ``channel_chunk`` and ``segmented`` are accepted
             (no effect on the values); distortion, rolling-shutter, unscented-transform,
             ``covars`` and ``distributed`` raise ``NotImplementedError`` unless left at
@@ -179,7 +189,8 @@ def rasterization(
             raise NotImplementedError(f"{name}={value!r}: {_UNSUPPORTED[name][1]}")
     if render_mode not in _DEPTH_MODES:
         raise ValueError(f"render_mode: expected one of {list(_DEPTH_MODES)}, got {render_mode!r}")
-    radius_rule = _radius_rule(gsplat_version)
+    release_options = _release_options(gsplat_version)
+    radius_rule = release_options["radius_rule"]
     try:
         width, height = operator.index(width), operator.index(height)
     except TypeError as err:
@@ -238,8 +249,8 @@ def rasterization(
         depth_mode=depth_mode,  # type: ignore[arg-type]
         radius_clip=radius_clip,
         rasterize_mode=rasterize_mode,
-        radius_rule=radius_rule,  # type: ignore[arg-type]
         absgrad=absgrad,
+        **release_options,
     )
     layout = _MetaLayout(batch, cameras, n, packed)
     images, alphas, projection = render_channels_last(

@@ -22,8 +22,6 @@ torchmetrics is an optional dependency: ``pip install "dego-occupancy[torchmetri
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -45,23 +43,24 @@ except ModuleNotFoundError as err:  # pragma: no cover - exercised without the e
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.grid import VoxelGrid
-from dego.metrics.occupancy import _OccupancySpec
+from dego.metrics.counts import DIGEST_BYTES as _DIGEST_BYTES
+from dego.metrics.counts import config_digest
+from dego.metrics.occupancy import OMITTED, _OccupancySpec, _Omitted
 from dego.metrics.rayiou import DEFAULT_THRESHOLDS, RayIoUReport, _RayIoUSpec
 from dego.metrics.report import OccupancyReport
 
-_DIGEST_BYTES = 16
 _KNOWN_CONFIGS: dict[tuple[int, ...], dict[str, Any]] = {}
 """Configurations by fingerprint, to name them in errors (filled by every metric made here)."""
 
 
 def _fingerprint(config: dict[str, Any]) -> tuple[int, ...]:
-    """16 bytes of the SHA-256 of the configuration, as ints 0..255.
+    """The configuration's :func:`dego.metrics.counts.config_digest` (16 ints 0..255, the
+    digest ``CountingMetric.sync`` compares across ranks).
 
     Small values on purpose: torchmetrics compares states with ``allclose`` when it forms
     compute groups, which would not tell large integers apart.
     """
-    text = json.dumps(config, sort_keys=True, default=str)
-    digest = tuple(hashlib.sha256(text.encode()).digest()[:_DIGEST_BYTES])
+    digest = config_digest(config)
     _KNOWN_CONFIGS.setdefault(digest, config)
     return digest
 
@@ -297,10 +296,12 @@ class OccupancyMetric(_DegoCountsMetric):
         self,
         pred: Tensor | np.ndarray,
         gt: Tensor | np.ndarray,
-        mask: Tensor | np.ndarray | None = None,
+        mask: Tensor | np.ndarray | _Omitted | None = OMITTED,
     ) -> None:
         """Add one batch of label grids ``(X, Y, Z)`` or ``(B, X, Y, Z)``; arguments, checks
-        and errors of :meth:`dego.OccupancyMetrics.update` (an error names the argument)."""
+        and errors of :meth:`dego.OccupancyMetrics.update` (an error names the argument):
+        under ``"occ3d"`` and ``"weak"``, pass the camera mask, or ``mask=None`` explicitly
+        to score every voxel."""
         confusion, geometric = self._spec.counts(pred, gt, mask)
         self.confusion += confusion.to(self.confusion.device)
         self.geometric += geometric.to(self.geometric.device)

@@ -56,7 +56,8 @@ def load_infos(path: PathLike) -> tuple[Keyframe, ...]:
         One :class:`Keyframe` per info entry, in file order.
 
     Raises:
-        FileNotFoundError: naming ``path``.
+        FileNotFoundError: naming ``path`` (missing, or not a regular file: a FIFO is
+            refused without blocking).
         dego.data.UnsafePickleError: the file names a global other than plain containers
             and numpy (nothing is executed).
         ValueError: naming the file, the entry (``infos[i]`` / ``data_list[i]``) and the

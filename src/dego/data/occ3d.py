@@ -214,6 +214,43 @@ def _to_tensor(value: np.ndarray | Tensor) -> Tensor:
     return torch.from_numpy(value)
 
 
+def _check_kind(
+    prefix: str,
+    name: str,
+    kind: str,
+    dtype: object,
+    shape: Sequence[int],
+    dtype_error: type[Exception],
+) -> None:
+    """The dtype kind (numpy's ``kind``) and rank of array ``name``."""
+    if name == "semantics" and kind not in "iu":
+        raise dtype_error(f"{prefix}semantics: expected integer labels, got dtype {dtype}")
+    if name != "semantics" and kind not in "biu":
+        raise dtype_error(
+            f"{prefix}{name}: expected a bool mask or integers 0/1, got dtype {dtype}"
+        )
+    if len(shape) != 3:
+        raise ValueError(f"{prefix}{name}: expected shape (X, Y, Z), got {tuple(shape)}")
+
+
+def _check_grid(
+    prefix: str,
+    name: str,
+    shape: tuple[int, ...],
+    expected_shape: Shape3 | None,
+    semantics_shape: tuple[int, ...],
+) -> None:
+    """Semantics' shape against ``expected_shape``, a mask's against semantics'."""
+    if name == "semantics":
+        if expected_shape is not None and shape != tuple(expected_shape):
+            raise ValueError(
+                f"{prefix}semantics: shape {shape} differs from expected_shape "
+                f"{tuple(expected_shape)} (pass expected_shape=None to accept any grid)"
+            )
+    elif shape != semantics_shape:
+        raise ValueError(f"{prefix}{name}: shape {shape} differs from semantics' {semantics_shape}")
+
+
 def _labels_from_arrays(
     arrays: Mapping[str, np.ndarray | Tensor],
     *,
@@ -233,28 +270,10 @@ def _labels_from_arrays(
                 f"{prefix}{name}: expected a numpy array or torch.Tensor, got "
                 f"{type(value).__name__}"
             )
-        kind = _dtype_kind(value)
-        if name == "semantics" and kind not in "iu":
-            raise dtype_error(
-                f"{prefix}semantics: expected integer labels, got dtype {value.dtype}"
-            )
-        if name != "semantics" and kind not in "biu":
-            raise dtype_error(
-                f"{prefix}{name}: expected a bool mask or integers 0/1, got dtype {value.dtype}"
-            )
-        if value.ndim != 3:
-            raise ValueError(f"{prefix}{name}: expected shape (X, Y, Z), got {tuple(value.shape)}")
+        _check_kind(prefix, name, _dtype_kind(value), value.dtype, value.shape, dtype_error)
     shape = tuple(arrays["semantics"].shape)
-    if expected_shape is not None and shape != tuple(expected_shape):
-        raise ValueError(
-            f"{prefix}semantics: shape {shape} differs from expected_shape "
-            f"{tuple(expected_shape)} (pass expected_shape=None to accept any grid)"
-        )
-    for name in ("mask_camera", "mask_lidar"):
-        if tuple(arrays[name].shape) != shape:
-            raise ValueError(
-                f"{prefix}{name}: shape {tuple(arrays[name].shape)} differs from semantics' {shape}"
-            )
+    for name in ("semantics", "mask_camera", "mask_lidar"):
+        _check_grid(prefix, name, tuple(arrays[name].shape), expected_shape, shape)
 
     semantics = arrays["semantics"]
     if semantics.size if isinstance(semantics, np.ndarray) else semantics.numel():
@@ -287,8 +306,24 @@ def _labels_from_arrays(
 # ----------------------------------------------------------------------------------------
 
 
-def _read_npz_arrays(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
-    return read_npz(path, keys, holds=f"an Occ3D labels file with arrays {list(keys)}")
+def _read_npz_arrays(
+    path: Path, keys: Sequence[str], expected_shape: Shape3 | None
+) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` (semantics first), each refused from its ``.npy`` header (dtype,
+    rank, shape against ``expected_shape`` and semantics') before it is inflated."""
+    shapes: dict[str, tuple[int, ...]] = {}
+
+    def check_header(key: str, shape: tuple[int, ...], dtype: np.dtype) -> None:
+        _check_kind("", key, dtype.kind, dtype, shape, ValueError)
+        _check_grid("", key, shape, expected_shape, shapes.setdefault("semantics", shape))
+        shapes[key] = shape
+
+    return read_npz(
+        path,
+        keys,
+        holds=f"an Occ3D labels file with arrays {list(keys)}",
+        check_header=check_header,
+    )
 
 
 @typechecked
@@ -313,19 +348,25 @@ def load_occ3d_labels(
     stored as bool or as integers holding only 0/1 (the real files use uint8). Extra
     arrays in the archive are ignored. Never unpickles (``allow_pickle=False``).
 
+    The dtypes and shapes are checked on the arrays' ``.npy`` headers, before anything is
+    inflated: a small file declaring a huge array (a zip bomb) is refused without reading
+    it (see :func:`dego._npz.read_npz` for the checks of the archive itself).
+
     Raises:
-        FileNotFoundError: ``path`` does not exist or is a directory.
-        ValueError: the file is not a readable ``.npz`` (truncated, garbage, pickle), an
-            array is missing or unreadable, or an array has a wrong dtype (float
-            semantics, float masks), shape or value (labels out of range, masks with
-            values other than 0/1); the message names the file and the array.
+        FileNotFoundError: ``path`` does not exist or is not a regular file (a directory,
+            a FIFO, a socket or a device: refused without blocking).
+        ValueError: the file is not a readable ``.npz`` (truncated, garbage, pickle,
+            sizes the archive cannot hold), an array is missing or unreadable, or an
+            array has a wrong dtype (float semantics, float masks), shape or value
+            (labels out of range, masks with values other than 0/1); the message names
+            the file and the array.
     """
     _check_expected_shape(expected_shape)
     _check_num_classes(num_classes)
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such Occ3D labels file")
-    arrays = _read_npz_arrays(path, _KEYS)
+    arrays = _read_npz_arrays(path, _KEYS, expected_shape)
     return _labels_from_arrays(
         arrays, prefix=f"{path}: ", expected_shape=expected_shape, num_classes=num_classes
     )

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from dego._npz import open_regular_file
 from dego._typing import typechecked
 
 PathLike = str | os.PathLike[str]
@@ -245,7 +246,8 @@ def load_pickle(path: PathLike) -> object:
         The unpickled object; numpy arrays come back as plain ``numpy.ndarray``.
 
     Raises:
-        FileNotFoundError: naming ``path`` when it does not exist.
+        FileNotFoundError: naming ``path`` when it does not exist or is not a regular
+            file (a FIFO, socket or device is refused without blocking).
         UnsafePickleError: (a ``pickle.UnpicklingError`` and a ``ValueError``) naming the
             file and the refused global ``module.name`` (or persistent id); nothing from
             the file has been called.
@@ -258,7 +260,8 @@ def load_pickle(path: PathLike) -> object:
     if file.is_dir():
         raise IsADirectoryError(f"{file}: expected a pickle file, got a directory")
     try:
-        with file.open("rb") as stream:
+        # A FIFO (or socket, device) is refused here rather than blocking in open().
+        with open_regular_file(file, "a pickle file") as stream:
             loaded = _RestrictedUnpickler(stream, file).load()
         return _plain(loaded, {})
     except UnsafePickleError as exc:

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from dego._checks import check_int, check_positive
+from dego._policy import check_memory
 from dego.classes import FREE_LABEL, PALETTE, Occ3DLabel
 from dego.data.primitives import BOX, CYLINDER, ELLIPSOID, Primitives, axis_to_matrix, yaw_matrix
 from dego.grid import VoxelGrid
@@ -57,6 +58,11 @@ _VEHICLE_LENGTHS = {
     "construction_vehicle": 6.0,
 }
 _VOXEL_MARGIN = 0.25  # a voxel is occupied when a solid comes within 0.25 voxel of its centre
+# Memory per camera pixel: ~240 bytes measured at the peak of frame() (ray origins and
+# directions, hits, labels, shading, images), 32 kept in each SyntheticFrame (images,
+# depth, semantics, instance_pixels).
+_PEAK_BYTES_PER_PIXEL = 256
+_KEPT_BYTES_PER_PIXEL = 32
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,7 +211,10 @@ class SyntheticScene:
         grid: the ground-truth voxel grid (Occ3D by default).
         num_frames: frames of the clip; offsets ``-(n // 2) .. (n - 1) // 2``, 0 = reference.
         frame_dt: seconds between frames (nuScenes keyframes: 0.5).
-        image_size: ``(H, W)`` of the six camera images.
+        image_size: ``(H, W)`` of the six camera images. A frame needs about 256 bytes
+            per pixel while it is built (about 0.28 GB at 256 x 704): sizes beyond the memory
+            limit (:func:`dego.set_memory_limit`) raise ``ValueError`` here, and
+            :meth:`frame` / :meth:`frames` check again under the limit of their call.
         num_vehicles: vehicles (parked or moving), >= 5: the first five are a car, a truck,
             a bus, a trailer and a construction vehicle, so every vehicle class occurs.
         num_pedestrians: walking pedestrians, >= 1.
@@ -265,6 +274,7 @@ class SyntheticScene:
             raise ValueError(f"grid: expected a VoxelGrid, got {type(grid).__name__}")
         self.seed, self.grid = seed, VoxelGrid.occ3d() if grid is None else grid
         self.frame_dt, self.image_size, self.ego_speed = frame_dt, tuple(image_size), ego_speed
+        self._check_memory()
         self.label_noise, self.depth_noise = label_noise, depth_noise
         self.offsets = tuple(range(-(num_frames // 2), (num_frames - 1) // 2 + 1))
         self._generator = torch.Generator().manual_seed(seed)
@@ -665,6 +675,20 @@ class SyntheticScene:
             raise ValueError(f"offset: expected one of {self.offsets}, got {offset!r}")
         return offset * self.frame_dt
 
+    def _check_memory(self, kept: int = 0) -> None:
+        """The memory guard (:func:`dego._policy.check_memory`) for building a frame while
+        ``kept`` frames are held (:meth:`frames` keeps them all)."""
+        h, w = self.image_size
+        pixels = len(CAMERAS) * h * w
+        nbytes = pixels * (_PEAK_BYTES_PER_PIXEL + _KEPT_BYTES_PER_PIXEL * kept)
+        held = f", {kept} frames of {_KEPT_BYTES_PER_PIXEL} bytes each kept" if kept else ""
+        check_memory(
+            "SyntheticScene",
+            nbytes,
+            f"image_size={self.image_size}: {len(CAMERAS)} cameras x {h} x {w} pixels, about "
+            f"{_PEAK_BYTES_PER_PIXEL} bytes each while a frame is built{held}",
+        )
+
     def _ego_solids(self, time: float) -> tuple[Primitives, Tensor]:
         """Every solid at ``time`` in that time's ego coordinates, and its instance id."""
         world_to_ego = torch.linalg.inv(self.ego_pose(time))
@@ -692,6 +716,7 @@ class SyntheticScene:
         ``offset`` (0 for static solids and sky): :attr:`SyntheticFrame.instance_pixels`
         without building the rest of the frame (only the camera ray cast)."""
         time = self._check_offset(offset)
+        self._check_memory()
         solids, ids = self._ego_solids(time)
         origins, directions = self._camera_rays()
         _, index = solids.intersect(origins.float(), directions)
@@ -700,6 +725,7 @@ class SyntheticScene:
     def frame(self, offset: int) -> SyntheticFrame:
         """The frame at integer ``offset`` (one of ``self.offsets``)."""
         time = self._check_offset(offset)
+        self._check_memory()
         ego_pose = self.ego_pose(time)
         solids, ids = self._ego_solids(time)
         winner = solids.rasterize_index(self.grid, _VOXEL_MARGIN * min(self.grid.voxel_size))
@@ -750,6 +776,7 @@ class SyntheticScene:
 
     def frames(self) -> list[SyntheticFrame]:
         """Every frame of the clip, in offset order."""
+        self._check_memory(kept=len(self.offsets))
         return [self.frame(offset) for offset in self.offsets]
 
     @staticmethod

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import math
 
 import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
-from dego.data.synthetic import LIDAR_ORIGIN, SyntheticScene
+from dego.data.synthetic import CAMERAS, LIDAR_ORIGIN, SyntheticScene
 from dego.grid import VoxelGrid
 from dego.metrics.rayiou import lidar_origins
 
@@ -18,6 +20,29 @@ agent moves less than its own size between neighbouring frames (a pedestrian abo
 0.3 m, a cyclist about 1 m), so its rendered and observed images overlap and the
 rendering loss pulls the fitted agent towards its new position; at 0.5 s the cyclists
 move 2-3 m and the fit loses them (measured on development seeds)."""
+
+MAX_DEMO_FRAMES = 81
+"""The longest clip ``dego demo`` and ``dego study`` render (``--frames``). The synthetic
+ego drives 5 m/s, 1 m per frame at :data:`DEMO_FRAME_DT`, and the Occ3D grid reaches 40 m
+ahead and behind it; the synthetic world's ground ends at +-80 m, so at 81 frames
+(offsets -40 .. 40) the outermost frames' grids just reach its edge. A frame of the clip
+holds about 13 MB (images, pseudo labels, three ground-truth grids): about 1 GB at 81
+frames, rendered at about two seconds a frame on a CPU."""
+
+CAMERA_PIXELS = len(CAMERAS) * math.prod(
+    inspect.signature(SyntheticScene).parameters["image_size"].default
+)
+"""Camera pixels of one frame of the demo's clips (six cameras at
+:class:`~dego.data.SyntheticScene`'s default image size)."""
+
+
+def max_gaussians(num_frames: int) -> int:
+    """The most canonical Gaussians a demo clip of ``num_frames`` frames can start from:
+    :meth:`~dego.demo.GaussianSceneModel.from_clip` draws one per surface pixel without
+    replacement, and a clip has fewer surface pixels than :data:`CAMERA_PIXELS` per frame
+    (how many fewer depends on the scene: a count above what the clip holds is still
+    refused by ``from_clip``)."""
+    return num_frames * CAMERA_PIXELS
 
 
 @dataclasses.dataclass(frozen=True)

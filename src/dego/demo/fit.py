@@ -70,6 +70,11 @@ OffsetGradients = Literal["raw", "balanced"]
 LOSS_TERMS = ("total", "semantics", "depth", "deformation")
 
 
+MAX_SEED = 2**32 - 1
+"""The largest seed of a fit, a demo or a study: what every generator involved accepts
+(``torch.manual_seed`` takes up to ``2**64 - 1``, numpy's legacy ``RandomState``
+``2**32 - 1``)."""
+
 _DEFAULT_LR = {
     "means": 0.01,
     "quats": 0.01,
@@ -98,7 +103,7 @@ class FitConfig:
             in dego 0.1.0: then ``L_reg``, a mean over *Gaussians*, cost ~0.08 at the
             agents' true motion against a best rendering gain of ~0.002, a mean over
             *pixels*, and the fit kept every agent still).
-        seed: seeds the initialisation and the frame order.
+        seed: seeds the initialisation and the frame order, in ``[0, MAX_SEED]``.
         cameras_per_step: cameras of the frame rendered per step, a seeded random subset
             (``None``: all six). Fewer cameras make a step cheaper (3: half the cost).
         allocation, class_balance, semantic_prior, latent_init: the initialisation of
@@ -159,6 +164,8 @@ class FitConfig:
         check_int("num_gaussians", self.num_gaussians, 1)
         for name in ("latent_dim", "hidden_dim", "depth", "head_hidden", "seed"):
             check_int(name, getattr(self, name), 0 if name in ("latent_dim", "seed") else 1)
+        if self.seed > MAX_SEED:
+            raise ValueError(f"seed: expected an int in [0, {MAX_SEED}], got {self.seed!r}")
         for name, value in self.lr.items():
             check_positive(f"lr[{name!r}]", value)
         unknown = sorted(set(self.lr) - set(_DEFAULT_LR))

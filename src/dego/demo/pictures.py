@@ -1,42 +1,72 @@
 """The demo's pictures: BEV prediction vs ground truth, one camera's renders, loss curves.
 
-Needs matplotlib (``pip install "dego-occupancy[viz]"``).
+Needs matplotlib (``pip install "dego-occupancy[viz]"``). Each ``*_figure`` function
+draws a Figure; :func:`png_bytes` encodes one, so that ``dego demo`` writes its pictures
+with its results, all or nothing (:func:`dego._atomic.write_files`); each ``*_picture``
+function writes one PNG file atomically.
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
+from typing import Any
 
 import torch
 from jaxtyping import Int
 from torch import Tensor
 
+from dego._atomic import write_bytes
 from dego.classes import FREE_LABEL
 from dego.demo.clip import DemoClip
 from dego.demo.fit import LOSS_TERMS, FitResult, gaussians_at, render
-from dego.viz import _new_figure, colorize_labels, compare_bev, save_figure
+from dego.viz import _new_figure, colorize_labels, compare_bev
 
 CAMERA = 0  # CAM_FRONT
+DPI = 80
+
+
+def png_bytes(figure: Any, dpi: float = DPI) -> bytes:
+    """``figure`` (a matplotlib Figure) encoded as a PNG."""
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=dpi)
+    return buffer.getvalue()
 
 
 def bev_picture(
     labels: Int[Tensor, "X Y Z"], clip: DemoClip, variant: str, path: Path, index: int | None = None
 ) -> Path:
+    """Write :func:`bev_figure` to ``path`` (PNG, atomically)."""
+    return write_bytes(path, png_bytes(bev_figure(labels, clip, variant, index)))
+
+
+def camera_picture(result: FitResult, clip: DemoClip, path: Path, camera: int = CAMERA) -> Path:
+    """Write :func:`camera_figure` to ``path`` (PNG, atomically)."""
+    return write_bytes(path, png_bytes(camera_figure(result, clip, camera)))
+
+
+def loss_picture(results: list[FitResult], path: Path) -> Path:
+    """Write :func:`loss_figure` to ``path`` (PNG, atomically)."""
+    return write_bytes(path, png_bytes(loss_figure(results)))
+
+
+def bev_figure(
+    labels: Int[Tensor, "X Y Z"], clip: DemoClip, variant: str, index: int | None = None
+) -> Any:
     """Top-down prediction next to the ground truth of frame ``index`` (default: the
     reference frame), in that frame's ego coordinates."""
     index = clip.reference if index is None else index
     offset = int(clip.times[index])
-    figure = compare_bev(
+    return compare_bev(
         labels.cpu(),
         clip.occupancy[index].cpu(),
         grid=clip.grid,
         titles=(f"{variant}: prediction, t = {offset:+d}", f"ground truth, t = {offset:+d}"),
     )
-    return save_figure(figure, path, dpi=80)
 
 
 @torch.no_grad()
-def camera_picture(result: FitResult, clip: DemoClip, path: Path, camera: int = CAMERA) -> Path:
+def camera_figure(result: FitResult, clip: DemoClip, camera: int = CAMERA) -> Any:
     """Pseudo labels vs the fitted Gaussians' render, depth and semantics, reference frame."""
     index = clip.reference
     gaussians, _ = gaussians_at(result.model, result.deformation, clip, index)
@@ -68,10 +98,10 @@ def camera_picture(result: FitResult, clip: DemoClip, path: Path, camera: int = 
             ax.imshow(colorize_labels(image.clamp(0, FREE_LABEL)).numpy())
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
-    return save_figure(figure, path, dpi=80)
+    return figure
 
 
-def loss_picture(results: list[FitResult], path: Path) -> Path:
+def loss_figure(results: list[FitResult]) -> Any:
     """Every loss term of every variant against the iteration (log scale)."""
     terms = [term for term in LOSS_TERMS if term != "total"]
     figure = _new_figure((3.2 * len(terms), 2.8))
@@ -87,4 +117,4 @@ def loss_picture(results: list[FitResult], path: Path) -> Path:
         if term != "deformation":
             ax.set_yscale("log")
         ax.legend(fontsize=8)
-    return save_figure(figure, path, dpi=80)
+    return figure

@@ -2,8 +2,10 @@
 
 Exit status: 0 when every sample was scored, 1 when some samples failed to read or
 validate (the scores over the others are printed, labelled incomplete), 2 for setup
-errors (no samples, missing predictions or origins, bad options: one ``error: ...`` line,
-no traceback). Under torchrun only rank 0 prints and writes the reports.
+errors (no samples, missing predictions or origins, bad options, a report path that
+cannot be written: one ``error: ...`` line, no traceback). The report paths are checked
+before scoring and the reports written all or nothing at the end. Under torchrun only
+rank 0 prints and writes the reports.
 """
 
 from __future__ import annotations
@@ -13,8 +15,16 @@ import os
 import sys
 from pathlib import Path
 
+import torch
+
+from dego._atomic import check_output_file, remove_empty_dirs, write_files
+from dego.classes import FREE_LABEL
 from dego.evaluation.errors import EvaluationSetupError
 from dego.evaluation.run import MISSING_POLICIES, PROTOCOL_CHOICES, evaluate
+
+MAX_WORKERS = 64
+"""The most local processes ``--workers`` starts (each is a Python process with torch,
+a few hundred MB; on a 2-core machine 2 is the fastest setting)."""
 
 DESCRIPTION = (
     "Score Occ3D-nuScenes occupancy predictions on CPU: voxel IoU / mIoU (with InsM, ScnM, "
@@ -29,7 +39,8 @@ EPILOG = (
 
 
 def parse_classes(text: str) -> tuple[int, ...]:
-    """``"1-11,13-16"`` -> ``(1, ..., 11, 13, ..., 16)``."""
+    """``"1-11,13-16"`` -> ``(1, ..., 11, 13, ..., 16)``. Ids above 17 (free) are refused
+    here, before any range is expanded; 17 itself is refused by the evaluation."""
     out: list[int] = []
     try:
         for part in text.split(","):
@@ -40,9 +51,13 @@ def parse_classes(text: str) -> tuple[int, ...]:
                 low, high = (int(v) for v in part.split("-"))
                 if high < low:
                     raise ValueError(part)
-                out.extend(range(low, high + 1))
             else:
-                out.append(int(part))
+                low = high = int(part)
+            if high > FREE_LABEL:
+                raise argparse.ArgumentTypeError(
+                    f"expected class ids in 0..{FREE_LABEL - 1}, got {part!r} in {text!r}"
+                )
+            out.extend(range(low, high + 1))
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected class ids like 1-11,13-16, got {text!r}"
@@ -52,13 +67,44 @@ def parse_classes(text: str) -> tuple[int, ...]:
     return tuple(out)
 
 
-def _positive(text: str) -> int:
+def parse_device(text: str) -> str:
+    """A device flag: ``cpu``, ``cuda`` or ``cuda:N`` of a CUDA device that exists here
+    (``torch.device`` spelling); anything else (``meta``, ``mps``, ``cuda`` without CUDA, a
+    missing ``cuda:N``) is an ``ArgumentTypeError``. Returns the device's name."""
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError, TypeError):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}") from None
+    if device.type == "cpu":
+        if device.index not in (None, 0):
+            raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+        return "cpu"
+    if device.type != "cuda":
+        raise argparse.ArgumentTypeError(
+            f"expected cpu, cuda or cuda:N, got {text!r} ({device.type} is not supported)"
+        )
+    if not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(f"{text!r}: CUDA is not available here")
+    count = torch.cuda.device_count()
+    if device.index is not None and device.index >= count:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: this machine has {count} CUDA device(s), cuda:0 .. cuda:{count - 1}"
+        )
+    try:
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as error:
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise argparse.ArgumentTypeError(f"{text!r} is not usable here ({reason})") from None
+    return str(device)
+
+
+def _workers(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
         value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an int >= 1, got {text!r}")
+    if not 1 <= value <= MAX_WORKERS:
+        raise argparse.ArgumentTypeError(f"expected an int in [1, {MAX_WORKERS}], got {text!r}")
     return value
 
 
@@ -103,9 +149,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         help="a sample without prediction: error (checked up front), free (all free), skip",
     )
     parser.add_argument(
-        "--workers", type=_positive, default=1, help="local processes (torch.distributed, gloo)"
+        "--workers",
+        type=_workers,
+        default=1,
+        help=f"local processes, 1-{MAX_WORKERS} (torch.distributed, gloo)",
     )
-    parser.add_argument("--device", default="cpu", help="where the metrics run (cpu)")
+    parser.add_argument(
+        "--device",
+        type=parse_device,
+        default="cpu",
+        help="where the metrics run: cpu, cuda or cuda:N (cpu)",
+    )
     parser.add_argument("--json", type=Path, help="write a JSON report (fractions) here")
     parser.add_argument("--markdown", type=Path, help="write a Markdown report (percent) here")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -119,9 +173,49 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``dego eval`` with parsed arguments; returns the exit status."""
+def run(args: argparse.Namespace, *, created: list[Path] | None = None) -> int:
+    """Run ``dego eval`` with parsed arguments; returns the exit status.
+
+    ``--json`` / ``--markdown`` are checked (and their folders created) before scoring;
+    the reports are written together at the end, all or nothing. ``created``: where the
+    folders made for them are recorded (by default they are removed again here when the
+    run fails before writing)."""
+    own = created is None
+    made: list[Path] = [] if created is None else created
+    try:
+        code = _run(args, made)
+    except BaseException:
+        if own:
+            remove_empty_dirs(made)
+        raise
+    if code != 0 and own:
+        remove_empty_dirs(made)
+    return code
+
+
+def _check_reports(args: argparse.Namespace, created: list[Path]) -> str | None:
+    """Why ``--json`` / ``--markdown`` cannot be written (one line), or ``None``."""
+    paths = {flag: path for flag, path in (("--json", args.json), ("--markdown", args.markdown))}
+    both = args.json is not None and args.markdown is not None
+    if both and Path(args.json).resolve() == Path(args.markdown).resolve():
+        return f"--json and --markdown name the same file, {args.json}"
+    for flag, path in paths.items():
+        if path is None:
+            continue
+        try:
+            created += check_output_file(Path(path))
+        except OSError as error:
+            return f"{flag}: {error.strerror or error}"
+    return None
+
+
+def _run(args: argparse.Namespace, created: list[Path]) -> int:
     is_rank0 = os.environ.get("RANK", "0") == "0"
+    problem = _check_reports(args, created)
+    if problem is not None:
+        if is_rank0:
+            print(f"error: {problem}", file=sys.stderr)
+        return 2
     try:
         report = evaluate(
             args.gt,
@@ -145,11 +239,13 @@ def run(args: argparse.Namespace) -> int:
     if not is_rank0:
         return 0 if report.complete else 1
     print(report.tables())
-    for path, text in ((args.json, report.to_json), (args.markdown, report.to_markdown)):
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(text())
-            print(f"wrote {path}")
+    reports = {
+        Path(path): text()
+        for path, text in ((args.json, report.to_json), (args.markdown, report.to_markdown))
+        if path is not None
+    }
+    for path in write_files(reports):
+        print(f"wrote {path}")
     if not report.complete:
         print(f"error: {len(report.failed)} sample(s) failed:", file=sys.stderr)
         for failure in report.failed:
@@ -159,8 +255,21 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``dego eval`` on its own (``dego.cli`` registers the same options)."""
-    return run(build_parser().parse_args(argv))
+    """``dego eval`` on its own (``dego.cli`` registers the same options); Ctrl-C ends it
+    with exit status 130 and one line on stderr."""
+    try:
+        return run(build_parser().parse_args(argv))
+    except KeyboardInterrupt:
+        print("dego eval: interrupted", file=sys.stderr)
+        return 130
 
 
-__all__ = ["add_arguments", "build_parser", "main", "parse_classes", "run"]
+__all__ = [
+    "MAX_WORKERS",
+    "add_arguments",
+    "build_parser",
+    "main",
+    "parse_classes",
+    "parse_device",
+    "run",
+]

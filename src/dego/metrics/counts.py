@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import warnings
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -14,6 +17,45 @@ from dego.classes import CLASS_NAMES, NUM_CLASSES
 _CONFIG_KEY = "_extra_state"
 """Where a persistent metric's configuration goes in ``state_dict`` (``nn.Module``'s extra-state
 key, so that checkpoints saved before counts became opt-in still load)."""
+
+
+DIGEST_BYTES = 16
+"""Length of :func:`config_digest`."""
+
+
+def config_digest(config: Mapping[str, Any]) -> tuple[int, ...]:
+    """The first 16 bytes of the SHA-256 of ``config`` as canonical JSON, as ints 0..255.
+
+    The same in every process (unlike Python's salted ``hash``), so ranks compare their
+    configurations with it; small values, so a float comparison (torchmetrics' ``allclose``)
+    still tells two digests apart.
+    """
+    text = json.dumps(config, sort_keys=True, default=str)
+    return tuple(hashlib.sha256(text.encode()).digest()[:DIGEST_BYTES])
+
+
+def _differences(mine: Mapping[str, Any], theirs: Mapping[str, Any]) -> str:
+    """``"protocol 'occ3d' vs 'weak'"``: the keys where two configurations differ."""
+    keys = [k for k in {**mine, **theirs} if mine.get(k) != theirs.get(k)]
+    return ", ".join(f"{k} {mine.get(k)!r} vs {theirs.get(k)!r}" for k in keys)
+
+
+def _all_gather_json(value: Any, process_group: Any, device: torch.device) -> list[Any]:
+    """Every rank's ``value`` (plain data), exchanged as JSON bytes: no pickle."""
+    text = json.dumps(value, default=str)
+    data = torch.tensor(list(text.encode()), dtype=torch.int64, device=device)
+    size = torch.tensor([data.numel()], dtype=torch.int64, device=device)
+    sizes = [torch.empty_like(size) for _ in range(dist.get_world_size(process_group))]
+    dist.all_gather(sizes, size, group=process_group)
+    longest = max(int(s) for s in sizes)
+    padded = torch.zeros(longest, dtype=torch.int64, device=device)
+    padded[: data.numel()] = data
+    gathered = [torch.empty_like(padded) for _ in sizes]
+    dist.all_gather(gathered, padded, group=process_group)
+    return [
+        json.loads(bytes(g[: int(s)].tolist()).decode())
+        for g, s in zip(gathered, sizes, strict=True)
+    ]
 
 
 def class_names(num_classes: int) -> tuple[str, ...]:
@@ -83,20 +125,67 @@ class CountingMetric(nn.Module):
     def sync(self, process_group: Any = None) -> CountingMetric:
         """All-reduce (sum) the counts over the ranks of ``process_group``; returns ``self``.
 
-        A no-op when torch.distributed is not initialised. The local counts are kept, so
-        ``sync`` can be called again safely; ``compute`` uses the synced totals until the
-        next ``update``, ``merge``, ``reset`` or ``load_state_dict``.
+        A no-op when torch.distributed is not initialised. The configuration (and the
+        shapes of the counts) is compared across the ranks first: if any rank's differs,
+        every rank raises ``ValueError`` naming its own configuration and the other ranks',
+        and nothing is pooled. The local counts are kept, so ``sync`` can be called again
+        safely; ``compute`` uses the synced totals until the next ``update``, ``merge``,
+        ``reset`` or ``load_state_dict``.
         """
         if not (dist.is_available() and dist.is_initialized()):
             return self
         counts = self._counts()
-        state = torch.cat([c.reshape(-1) for c in counts])
-        if dist.get_backend(process_group) == "nccl" and state.device.type != "cuda":
-            state = state.to(torch.device("cuda", torch.cuda.current_device()))
+        device = counts[0].device
+        if dist.get_backend(process_group) == "nccl" and device.type != "cuda":
+            device = torch.device("cuda", torch.cuda.current_device())
+        self._check_same_config_on_every_rank(process_group, device)
+        state = torch.cat([c.reshape(-1) for c in counts]).to(device)
         dist.all_reduce(state, op=dist.ReduceOp.SUM, group=process_group)
         parts = state.to(counts[0].device).split([c.numel() for c in counts])
         self._synced = [p.view(c.shape) for p, c in zip(parts, counts, strict=True)]
         return self
+
+    def _identity(self) -> dict[str, Any]:
+        """What ranks must share to pool their counts: the class, the configuration and
+        the shapes of the counts."""
+        return {
+            "metric": type(self).__name__,
+            "config": self._config(),
+            "counts": {name: list(getattr(self, name).shape) for name in self.COUNTS},
+        }
+
+    def _check_same_config_on_every_rank(self, process_group: Any, device: torch.device) -> None:
+        """One all-gather of a fixed-length digest; only if the digests differ, a second
+        exchange (of every rank's configuration, to name them) and ``ValueError`` on every
+        rank (each takes the same branch: each sees every digest)."""
+        identity = json.loads(json.dumps(self._identity(), default=str))  # as others see it
+        digest = torch.tensor(config_digest(identity), dtype=torch.int64, device=device)
+        digests = [torch.empty_like(digest) for _ in range(dist.get_world_size(process_group))]
+        dist.all_gather(digests, digest, group=process_group)
+        if all(torch.equal(d, digest) for d in digests):
+            return
+        identities = _all_gather_json(identity, process_group, device)
+        rank = dist.get_rank(process_group)
+
+        def described(theirs: dict[str, Any]) -> str:
+            kind = "" if theirs["metric"] == identity["metric"] else f"a {theirs['metric']} "
+            mine = {"metric": identity["metric"], **identity["config"]}
+            differences = _differences(mine, {"metric": theirs["metric"], **theirs["config"]})
+            if not differences:  # only the shapes of the counts differ
+                differences = _differences(identity["counts"], theirs["counts"])
+            return f"{kind}{theirs['config']} ({differences})"
+
+        others = [
+            f"rank {r} has {described(ident)}"
+            for r, ident in enumerate(identities)
+            if r != rank and ident != identity
+        ]
+        raise ValueError(
+            f"sync: the ranks of the process group hold {type(self).__name__} with different "
+            f"configurations, whose counts must not be pooled: this rank "
+            f"({rank}) has {self._config()}; {'; '.join(others)}. Configure the metric "
+            "the same way on every rank"
+        )
 
     # -- (de)serialisation ------------------------------------------------------------
     def persistent(self, mode: bool = True) -> CountingMetric:
@@ -181,4 +270,4 @@ class CountingMetric(nn.Module):
         self._changed()
 
 
-__all__ = ["CountingMetric"]
+__all__ = ["DIGEST_BYTES", "CountingMetric", "config_digest"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import enum
 import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -26,6 +27,21 @@ WEAK_REMOVED_CLASSES = (0, 12)
 SURROUNDOCC_REMOVED_CLASSES = (0,)
 """GT classes whose voxels the SurroundOcc protocol removes (0: noise)."""
 _REMOVED_CLASSES = {"weak": WEAK_REMOVED_CLASSES, "surroundocc": SURROUNDOCC_REMOVED_CLASSES}
+CAMERA_MASK_PROTOCOLS = ("occ3d", "weak")
+"""Protocols scored inside the camera mask (Occ3D's ``mask_camera``): their ``update`` needs
+``mask`` (the camera mask, or ``mask=None`` explicitly to score every voxel)."""
+
+
+class _Omitted(enum.Enum):
+    """The default of ``update``'s ``mask``: not passed (``None`` is an explicit choice)."""
+
+    MASK = "omitted"
+
+    def __repr__(self) -> str:
+        return "<omitted>"
+
+
+OMITTED = _Omitted.MASK
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -112,7 +128,7 @@ class _OccupancySpec:
         self,
         pred: Tensor | np.ndarray,
         gt: Tensor | np.ndarray,
-        mask: Tensor | np.ndarray | None,
+        mask: Tensor | np.ndarray | _Omitted | None,
     ) -> tuple[Tensor, Tensor]:
         """The ``(C, C)`` confusion and ``(2, 2)`` occupied/free counts of one batch, on
         ``gt``'s device (the checks and errors of :meth:`OccupancyMetrics.update`)."""
@@ -120,6 +136,14 @@ class _OccupancySpec:
             raise ValueError(
                 f"gt: expected a label grid (X, Y, Z) or (B, X, Y, Z), got shape {tuple(gt.shape)}"
             )
+        if mask is OMITTED:
+            if self.protocol in CAMERA_MASK_PROTOCOLS:
+                raise ValueError(
+                    f"mask: the {self.protocol!r} protocol is scored inside the camera mask, "
+                    "and none was passed; pass the camera mask (Occ3D's mask_camera, bool, "
+                    "same shape as gt), or mask=None explicitly to score every voxel"
+                )
+            mask = None
         confusion = confusion_matrix(
             pred,
             gt,
@@ -221,7 +245,7 @@ class OccupancyMetrics(CountingMetric):
         self,
         pred: Tensor | np.ndarray,
         gt: Tensor | np.ndarray,
-        mask: Tensor | np.ndarray | None = None,
+        mask: Tensor | np.ndarray | _Omitted | None = OMITTED,
     ) -> None:
         """Add one batch of label grids ``(X, Y, Z)`` or ``(B, X, Y, Z)`` to the state.
 
@@ -230,12 +254,17 @@ class OccupancyMetrics(CountingMetric):
                 them, int8 ... int64: the counts do not depend on it), torch or numpy.
                 An empty batch ``(0, X, Y, Z)`` adds nothing.
             gt: ground-truth labels in ``0..C-1`` or ``ignore_label``, same shape.
-            mask: optional camera mask, bool (or uint8 holding only 0/1), same shape.
+            mask: the camera mask, bool (or uint8 holding only 0/1), same shape; False
+                voxels are skipped. ``"occ3d"`` and ``"weak"`` are defined inside the
+                camera mask, so for them it must be passed: the mask, or ``mask=None``
+                explicitly to score every voxel. ``"surroundocc"`` has none (omitted
+                means ``None``).
 
         Raises:
             TypeError: bool, floating or non-array labels.
             ValueError: a label out of range (naming ``pred`` or ``gt`` and the value), a
-                bad mask, shape or device mismatches.
+                bad mask, no ``mask`` under ``"occ3d"`` or ``"weak"``, shape or device
+                mismatches.
         """
         confusion, geometric = self._spec.counts(pred, gt, mask)
         self.confusion += confusion.to(self.confusion.device)
@@ -255,4 +284,9 @@ class OccupancyMetrics(CountingMetric):
         return ", ".join(f"{k}={v!r}" for k, v in self._config().items() if k != "groups")
 
 
-__all__ = ["SURROUNDOCC_REMOVED_CLASSES", "WEAK_REMOVED_CLASSES", "OccupancyMetrics"]
+__all__ = [
+    "CAMERA_MASK_PROTOCOLS",
+    "SURROUNDOCC_REMOVED_CLASSES",
+    "WEAK_REMOVED_CLASSES",
+    "OccupancyMetrics",
+]

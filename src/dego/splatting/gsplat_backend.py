@@ -1,8 +1,9 @@
 """Optional dispatch to gsplat's CUDA rasteriser (``pip install "dego-occupancy[gsplat]"``).
 
-gsplat compiles its compositing constants (max alpha 0.999, alpha threshold 1/255,
+gsplat compiles its compositing constants (max alpha, alpha threshold 1/255,
 transmittance threshold 1e-4) and its radius rule into the kernels, so it is only used
-when the requested settings equal those of the installed release: gsplat 1.4.x uses the
+when the requested settings equal those of the installed release (:func:`constants_of`):
+max alpha is 0.999 in gsplat 1.4 and 1.5 and 0.99 from 1.6; gsplat 1.4.x uses the
 ``"gsplat<=1.4"`` radius rule and unbatched inputs (rendered one batch item at a time),
 gsplat >= 1.5 the ``"gsplat>=1.5"`` rule and batched inputs. ``backend="auto"`` silently
 keeps the torch path otherwise, ``backend="gsplat"`` raises with the reasons.
@@ -23,12 +24,18 @@ from dego.splatting.projection import RADIUS_SIGMA, Projection
 if TYPE_CHECKING:
     from dego.splatting.splatter import SplatConfig, SplatOutput
 
-_GSPLAT_CONSTANTS = {
-    "max_alpha": 0.999,
-    "alpha_min": 1 / 255,
-    "transmittance_min": 1e-4,
-}
 MIN_VERSION = (1, 4)
+MAX_ALPHA_CHANGE = (1, 6)
+"""The release from which gsplat caps alpha at 0.99 (0.999 before; its commit c5ff586b)."""
+
+
+def constants_of(version: tuple[int, int]) -> dict[str, float]:
+    """The compositing constants a gsplat release compiles in, under SplatConfig's names."""
+    return {
+        "max_alpha": 0.99 if version >= MAX_ALPHA_CHANGE else 0.999,
+        "alpha_min": 1 / 255,
+        "transmittance_min": 1e-4,
+    }
 
 
 def installed_version() -> tuple[int, int] | None:
@@ -77,11 +84,14 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
             )
         if version < (1, 5) and config.absgrad and gaussians.batch_shape[0] > 1:
             reasons.append("absgrad with gsplat 1.4 needs a batch of one (1.4 is unbatched)")
+        for name, value in constants_of(version).items():
+            if getattr(config, name) != value:
+                reasons.append(
+                    f"{name}={getattr(config, name)} differs from the installed gsplat "
+                    f"{version[0]}.{version[1]}'s fixed {value}"
+                )
     if gaussians.device.type != "cuda":
         reasons.append(f"gsplat needs CUDA tensors, got {gaussians.device}")
-    for name, value in _GSPLAT_CONSTANTS.items():
-        if getattr(config, name) != value:
-            reasons.append(f"{name}={getattr(config, name)} differs from gsplat's fixed {value}")
     if reasons and strict:
         raise ValueError("backend: cannot use 'gsplat': " + "; ".join(reasons))
     return not reasons

@@ -295,16 +295,19 @@ def _check_call(name: str, cameras_at: int) -> Callable[[F], F]:
             ):
                 if isinstance(arg, Tensor) and arg.ndim != 4:
                     shape = tuple(arg.shape)
-                    advice = (
-                        "flatten the leading axes into one batch axis, e.g. (B, T, V) -> "
-                        "(B * T, V) with .flatten(0, 1), and the Gaussians likewise "
-                        "(GaussianSet.flatten_batch())"
-                        if arg.ndim > 4
-                        else "add the batch axis B, e.g. world_to_cam[None]"
-                    )
-                    raise ValueError(
-                        f"{label}: expected shape (B, V, {tail}), got {shape}; {advice}"
-                    )
+                    if arg.ndim > 4:
+                        advice = (
+                            "; flatten the leading axes into one batch axis, e.g. (B, T, V) "
+                            "-> (B * T, V) with .flatten(0, 1), and the Gaussians likewise "
+                            "(GaussianSet.flatten_batch())"
+                        )
+                    elif arg.ndim == 3:  # (V, ...): one batch
+                        advice = f"; add the batch axis B, e.g. {label}[None]"
+                    elif arg.ndim == 2:  # one matrix: one batch of one camera
+                        advice = f"; add the batch and camera axes B, V, e.g. {label}[None, None]"
+                    else:
+                        advice = ""
+                    raise ValueError(f"{label}: expected shape (B, V, {tail}), got {shape}{advice}")
             return fn(*args, **kwargs)
 
         return wrapper  # type: ignore[return-value]

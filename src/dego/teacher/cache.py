@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import re
+import stat
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +22,17 @@ FORMAT_VERSION = 1
 _CACHE_DTYPES = {torch.float16: np.dtype(np.float16), torch.float32: np.dtype(np.float32)}
 _SAFE_ID = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,199}")
 _REQUIRED = ("features", "format_version", "dtype", "sample_id", "camera")
+_SCALARS = {
+    "format_version": "integer",
+    "camera": "integer",
+    "dtype": "string",
+    "sample_id": "string",
+}
+# dego._npz.write_npz's temporary name for an entry: ".<entry name>.<uuid4 hex>.tmp"
+_TEMPORARY = re.compile(r"\.[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,199}_cam_\d+\.npz\.[0-9a-f]{32}\.tmp")
+_STALE_TEMPORARY_SECONDS = 3600.0
+"""Temporary files of interrupted saves older than this (by mtime) are removed when a cache
+is opened; younger ones may belong to a save still running in another process."""
 
 
 def _check_key(sample_id: str, camera: int) -> None:
@@ -64,6 +77,7 @@ class TeacherFeatureCache:
         self.root = Path(root)
         self.dtype = dtype
         self._np_dtype = _CACHE_DTYPES[dtype]
+        _remove_stale_temporaries(self.root, _STALE_TEMPORARY_SECONDS)
 
     def __repr__(self) -> str:
         return f"TeacherFeatureCache(root={str(self.root)!r}, dtype={self.dtype})"
@@ -95,7 +109,12 @@ class TeacherFeatureCache:
         found = []
         for path in self.root.glob("*_cam_*.npz"):
             sample_id, _, camera = path.name[: -len(".npz")].rpartition("_cam_")
-            if camera.isdigit() and _SAFE_ID.fullmatch(sample_id) and ".." not in sample_id:
+            if (
+                camera.isdigit()
+                and _SAFE_ID.fullmatch(sample_id)
+                and ".." not in sample_id
+                and path.is_file()  # not a directory, FIFO or other non-regular file
+            ):
                 found.append((sample_id, int(camera)))
         return sorted(found)
 
@@ -168,7 +187,12 @@ class TeacherFeatureCache:
         path = self.path(sample_id, camera)
         if not path.is_file():
             raise FileNotFoundError(self._missing(sample_id, camera, path))
-        arrays = read_npz(path, _REQUIRED, holds="a teacher feature cache entry")
+        arrays = read_npz(
+            path,
+            _REQUIRED,
+            holds="a teacher feature cache entry",
+            check_header=lambda key, shape, dtype: _check_header(key, shape, dtype, expected_shape),
+        )
         features = self._validate(path, arrays, sample_id, camera, expected_shape)
         if not features.flags.writeable:
             features = features.copy()
@@ -217,6 +241,43 @@ class TeacherFeatureCache:
         if not np.isfinite(features).all():
             raise ValueError(f"{path}: features: hold NaN or inf")
         return features
+
+
+def _check_header(
+    key: str,
+    shape: tuple[int, ...],
+    dtype: np.dtype,
+    expected_shape: tuple[int, int, int] | None,
+) -> None:
+    """The shape checks of :meth:`TeacherFeatureCache._validate` that an ``.npy`` header
+    allows, run before the array is inflated (a huge declared shape is refused unread)."""
+    if key in _SCALARS and shape != ():
+        raise ValueError(f"{key}: expected a scalar {_SCALARS[key]}, got shape {shape} of {dtype}")
+    if key == "features" and len(shape) != 3:
+        raise ValueError(f"features: must be (C, H, W), got shape {shape}")
+    if key == "features" and expected_shape is not None and shape != tuple(expected_shape):
+        raise ValueError(f"features: shape {shape}, expected_shape is {tuple(expected_shape)}")
+
+
+def _remove_stale_temporaries(root: Path, max_age: float) -> None:
+    """Remove the temporary files of interrupted saves in ``root`` older than ``max_age``
+    seconds (regular files named as ``dego._npz.write_npz`` names an entry's temporary);
+    anything that cannot be removed (a read-only cache) is left, silently."""
+    try:
+        entries = os.scandir(root)
+    except OSError:  # no directory yet (created on the first save), or unreadable
+        return
+    cutoff = time.time() - max_age
+    with entries:
+        for entry in entries:
+            if not _TEMPORARY.fullmatch(entry.name):
+                continue
+            try:
+                info = entry.stat(follow_symlinks=False)
+                if stat.S_ISREG(info.st_mode) and info.st_mtime < cutoff:
+                    os.unlink(entry.path)
+            except OSError:  # removed meanwhile, or not ours to remove
+                continue
 
 
 def _scalar_int(path: Path, arrays: dict[str, np.ndarray], key: str) -> int:

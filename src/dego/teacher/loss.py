@@ -86,10 +86,14 @@ def distillation_loss(
         teacher: ``(B, V, C, H, W)`` teacher targets at the same resolution, same dtype and
             device (detach them, or not, as the training scheme requires).
         mask: optional ``(B, V, H, W)`` valid-pixel mask, bool (or uint8 holding only 0/1),
-            on the inputs' device. Masked-out pixels contribute nothing, not even through
-            their gradient: their features are replaced (``torch.where``) before the cosine,
-            so NaN or inf there cannot reach the loss or any gradient. The mean is over
-            the valid pixels only, pooled over the batch and cameras.
+            on the inputs' device. Masked-out pixels contribute nothing: their features
+            are replaced (``torch.where``) before the cosine, so NaN or inf there cannot
+            reach the loss, and the gradient w.r.t. ``student`` and ``teacher`` is exactly
+            0 there. That guarantee ends at these two tensors: a layer upstream whose own
+            input is inf at those pixels computes ``0 * inf = NaN`` in its weight gradient
+            (autograd's rule, out of this function's reach); zero such inputs with
+            ``torch.where`` before the layer. The mean is over the valid pixels only,
+            pooled over the batch and cameras.
         eps: lower bound on each feature norm, see :func:`cosine_distance_map`.
 
     Returns:

@@ -1,0 +1,381 @@
+"""The ``dego`` command under faults: bad flags, bad output paths, a full disk, Ctrl-C.
+
+Nothing here runs a fit: bad flags must be refused before any work starts (the work
+functions are replaced by ones that fail the test), writers are driven directly with a
+failure injected into the file writes, and the Ctrl-C tests interrupt real processes.
+"""
+
+from __future__ import annotations
+
+import errno
+import io
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import dego.cli
+from dego.cli import main
+from tests._repo import ROOT, needs_source_tree
+
+
+@pytest.fixture
+def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Starting a demo or a study fails the test: validation must come first."""
+
+    def started(*args: object, **kwargs: object) -> int:
+        raise AssertionError("the work started before the flags were checked")
+
+    monkeypatch.setattr(dego.cli, "run_demo", started)
+    monkeypatch.setattr(dego.cli, "run_study", started)
+
+
+def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    """The error line of an argparse usage error (rc 2) of ``dego argv``."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert lines[0].startswith("usage: dego")
+    assert ": error: " in lines[-1]
+    return lines[-1]
+
+
+# -- bad flags are usage errors before any work -------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("arguments", "flag"),
+    [
+        (["--device", "meta"], "--device"),
+        (["--device", "mps"], "--device"),
+        (["--device", "cuda:99"], "--device"),
+        (["--device", "cpu:3"], "--device"),
+        (["--seed", "-1"], "--seed"),
+        (["--seed", str(2**70)], "--seed"),
+        (["--seed", str(2**32)], "--seed"),
+        (["--frames", "100000"], "--frames"),
+        (["--iterations", str(10**9)], "--iterations"),
+        (["--gaussians", str(10**9)], "--gaussians"),
+        (["--frames", "2", "--gaussians", str(2 * 6 * 64 * 176 + 1)], "--gaussians"),
+    ],
+)
+def test_bad_demo_flags_are_usage_errors_before_any_work(
+    arguments: list[str], flag: str, no_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert flag in usage_error(["demo", *arguments], capsys)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "flag", "also"),
+    [
+        (["--seeds", "1,1"], "--seeds", "1"),
+        (["--seeds", "0-3,2"], "--seeds", "2"),
+        (["--budgets", "500,500"], "--budgets", "500"),
+        (["--variants", "static,rigid,static"], "--variants", "static"),
+        (["--variants", ","], "--variants", "at least one"),
+        (["--seeds", "-1"], "--seeds", ""),
+        (["--seeds", str(2**32)], "--seeds", ""),
+        (["--seeds", "0-10000000"], "--seeds", ""),
+        (["--seeds", f"0-{10**15}"], "--seeds", ""),
+        (["--seeds", "5-3"], "--seeds", ""),
+        (["--frames", "100000"], "--frames", ""),
+        (["--iterations", str(10**9)], "--iterations", ""),
+        (["--budgets", str(10**9)], "--budgets", ""),
+        (["--mask-prior", "inf"], "--mask-prior", ""),
+    ],
+)
+def test_bad_study_flags_are_usage_errors_before_any_work(
+    arguments: list[str],
+    flag: str,
+    also: str,
+    no_work: None,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    line = usage_error(["study", *arguments], capsys)
+    assert flag in line and also in line
+
+
+def test_study_config_refuses_duplicates() -> None:
+    from dego.study import StudyConfig
+
+    for field, value in [("seeds", (1, 1)), ("budgets", (300, 300)), ("variants", ("rigid",) * 2)]:
+        with pytest.raises(ValueError, match=f"^{field}: .*repeat"):
+            StudyConfig(**{field: value})  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^seeds: "):
+        StudyConfig(seeds=(2**32,))
+
+
+@pytest.mark.parametrize(
+    ("arguments", "flag"),
+    [
+        (["--device", "meta"], "--device"),
+        (["--device", "cuda:99"], "--device"),
+        (["--workers", "100000"], "--workers"),
+        (["--classes", f"0-{10**15}"], "--classes"),
+    ],
+)
+def test_bad_eval_flags_are_usage_errors(
+    arguments: list[str],
+    flag: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from dego.evaluation import command
+
+    def started(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the evaluation started before the flags were checked")
+
+    monkeypatch.setattr(command, "evaluate", started)
+    argv = ["eval", "--gt", str(tmp_path), "--pred", str(tmp_path), *arguments]
+    assert flag in usage_error(argv, capsys)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA exists here")
+@pytest.mark.parametrize("command", ["demo", "eval"])
+def test_cuda_without_cuda_is_a_usage_error(
+    command: str, no_work: None, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    extra = ["--gt", str(tmp_path), "--pred", str(tmp_path)] if command == "eval" else []
+    line = usage_error([command, *extra, "--device", "cuda"], capsys)
+    assert "--device" in line and "CUDA" in line
+
+
+# -- output paths are checked (and created) before any work ---------------------------------
+
+
+@pytest.mark.parametrize("command", ["demo", "study"])
+def test_out_onto_a_file_is_a_usage_error(
+    command: str, no_work: None, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    a_file = tmp_path / "taken"
+    a_file.write_text("mine\n")
+    assert "--out" in usage_error([command, "--out", str(a_file)], capsys)
+    assert "--out" in usage_error([command, "--out", str(a_file / "below")], capsys)
+    assert a_file.read_text() == "mine\n"
+
+
+@pytest.mark.parametrize("command", ["demo", "study"])
+def test_out_is_created_before_the_work_starts(
+    command: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "new" / "deeper"
+    seen = []
+
+    def started(*args: object, **kwargs: object) -> int:
+        seen.append(out.is_dir())
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dego.cli, "run_demo" if command == "demo" else "run_study", started)
+    assert main([command, "--quick", "--out", str(out)]) == 130
+    assert seen == [True]
+    assert not (tmp_path / "new").exists()  # interrupted: the folders it made are gone
+
+
+def test_eval_output_paths_are_checked_before_scoring(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from dego.evaluation import command
+
+    def started(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the evaluation started before the output paths were checked")
+
+    monkeypatch.setattr(command, "evaluate", started)
+    a_file = tmp_path / "taken"
+    a_file.write_text("mine\n")
+    base = ["eval", "--gt", str(tmp_path), "--pred", str(tmp_path)]
+    for flag, path in [
+        ("--json", tmp_path),
+        ("--markdown", tmp_path),
+        ("--json", a_file / "r.json"),
+        ("--markdown", a_file / "sub" / "r.md"),
+    ]:
+        assert main([*base, flag, str(path)]) == 2, (flag, path)
+        _, err = capsys.readouterr()
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and flag in lines[0], err
+        assert "Traceback" not in err
+    assert a_file.read_text() == "mine\n"
+
+
+# -- every output is written whole or not at all ---------------------------------------------
+
+
+class FullDisk:
+    """Replaces ``io.open`` / ``open``: of the files opened for writing in ``folder``, the
+    ``fail_at``-th takes half of what is written to it and then raises ENOSPC, like a disk
+    that fills up. (A file descriptor opened for writing counts as in ``folder``.)"""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, folder: Path, fail_at: int = 2) -> None:
+        self.real, self.folder, self.fail_at, self.opened = io.open, folder, fail_at, 0
+        monkeypatch.setattr(io, "open", self)
+        monkeypatch.setattr("builtins.open", self)
+
+    def __call__(self, file, mode="r", *args, **kwargs):  # type: ignore[no-untyped-def]
+        handle = self.real(file, mode, *args, **kwargs)
+        if not any(flag in mode for flag in "wxa+"):
+            return handle
+        if not isinstance(file, int) and self.folder not in Path(file).resolve().parents:
+            return handle
+        self.opened += 1
+        return _Filling(handle) if self.opened == self.fail_at else handle
+
+
+class _Filling:
+    def __init__(self, handle) -> None:  # type: ignore[no-untyped-def]
+        self._handle = handle
+
+    def write(self, data):  # type: ignore[no-untyped-def]
+        self._handle.write(data[: len(data) // 2])
+        self._handle.flush()
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def __getattr__(self, name: str):  # type: ignore[no-untyped-def]
+        return getattr(self._handle, name)
+
+    def __enter__(self) -> _Filling:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._handle.close()
+
+
+def _previous_run(out: Path, names: list[str]) -> dict[str, bytes]:
+    out.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (out / name).write_bytes(f"previous {name}\n".encode())
+    return {name: (out / name).read_bytes() for name in names}
+
+
+def _contents(out: Path) -> dict[str, bytes]:
+    return {path.name: path.read_bytes() for path in out.iterdir()}
+
+
+def test_demo_results_are_written_whole_or_not_at_all(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "demo"
+    before = _previous_run(out, ["results.json", "results.md"])
+    budget = {"frames": 2, "iterations": 3, "gaussians": 300}
+    arguments = (out, "| table |", ["rigid - static: +1.0"], {}, {}, {}, 0, budget)
+    FullDisk(monkeypatch, tmp_path.resolve())
+    with pytest.raises(OSError, match="No space left"):
+        dego.cli._write_results(*arguments, torch.device("cpu"))
+    assert _contents(out) == before  # the previous run, whole; no temporary files
+    monkeypatch.undo()
+    dego.cli._write_results(*arguments, torch.device("cpu"))
+    assert set(_contents(out)) == set(before)
+    assert b"| table |" in (out / "results.md").read_bytes()
+
+
+def test_study_report_is_written_whole_or_not_at_all(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dego.study import MASK_METRICS, METRICS, StudyConfig, StudyRun, write_study
+
+    out = tmp_path / "study"
+    before = _previous_run(out, ["study.md", "study.json"])
+    runs = [
+        StudyRun(
+            seed,
+            10,
+            variant,
+            dict.fromkeys(METRICS, 1.0 + seed),
+            dict.fromkeys(MASK_METRICS, 0.5),
+            0.0,
+            1.0,
+        )
+        for seed in range(2)
+        for variant in ("static", "rigid")
+    ]
+    config = StudyConfig(seeds=(0, 1), budgets=(10,), variants=("static", "rigid"))
+    FullDisk(monkeypatch, tmp_path.resolve())
+    with pytest.raises(OSError, match="No space left"):
+        write_study(runs, config, out, pictures=False)
+    assert _contents(out) == before
+    monkeypatch.undo()
+    write_study(runs, config, out, pictures=False)
+    assert set(_contents(out)) == set(before)
+    assert (out / "study.md").read_text().startswith("# dego study")
+
+
+def test_atomic_writer_is_all_or_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from dego._atomic import write_files, write_text
+
+    before = _previous_run(tmp_path, ["a.txt", "b.bin"])
+    files = {tmp_path / "a.txt": "new a\n", tmp_path / "b.bin": b"new b\n"}
+    FullDisk(monkeypatch, tmp_path.resolve())
+    with pytest.raises(OSError, match="No space left"):
+        write_files(files)
+    assert _contents(tmp_path) == before
+    monkeypatch.undo()
+    assert write_files(files) == list(files)
+    assert _contents(tmp_path) == {"a.txt": b"new a\n", "b.bin": b"new b\n"}
+    write_text(tmp_path / "sub" / "c.txt", "c\n")  # parents are created
+    assert (tmp_path / "sub" / "c.txt").read_text() == "c\n"
+
+
+# -- Ctrl-C -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["demo", "study"])
+def test_ctrl_c_ends_with_130_one_line_and_no_partial_outputs(command: str, tmp_path: Path) -> None:
+    fresh = tmp_path / "fresh" / "out"  # made by the command: removed again
+    kept = tmp_path / "kept"  # a previous run's folder: left as it was
+    before = _previous_run(kept, ["results.json" if command == "demo" else "study.json"])
+    small = ["--frames", "2", "--iterations", "1000", "--no-pictures"]
+    small += ["--gaussians", "300"] if command == "demo" else ["--seeds", "0", "--budgets", "300"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    for out in (fresh, kept):
+        process = subprocess.Popen(
+            [sys.executable, "-m", "dego", command, *small, "--out", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        assert process.stdout is not None
+        first = process.stdout.readline()  # printed once the flags are checked
+        assert first.startswith(f"dego {dego.__version__} {command}"), first
+        time.sleep(1.0)  # inside the work (rendering the clip)
+        process.send_signal(signal.SIGINT)
+        try:
+            _, err = process.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            raise
+        assert process.returncode == 130, err
+        assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+        assert err.strip().splitlines()[-1] == "dego: interrupted", err
+        assert err.count("interrupted") == 1, err
+    assert not (tmp_path / "fresh").exists()
+    assert _contents(kept) == before
+
+
+@needs_source_tree
+def test_the_documented_flag_bounds_are_the_code_s() -> None:
+    """docs/validation.md, docs/study.md and docs/evaluation.md quote these bounds."""
+    from dego import cli
+    from dego.demo.clip import MAX_DEMO_FRAMES
+    from dego.demo.fit import MAX_SEED
+    from dego.evaluation.command import MAX_WORKERS
+
+    assert ROOT is not None
+    validation = " ".join((ROOT / "docs" / "validation.md").read_text().split())
+    assert MAX_SEED == 2**32 - 1 and "0..2^32-1" in validation
+    assert f"`--iterations` {cli.MAX_ITERATIONS:,}" in validation
+    assert f"`--frames` {MAX_DEMO_FRAMES}" in validation
+    assert f"`--workers` {MAX_WORKERS}" in validation
+    assert f"at most {cli.MAX_LIST_VALUES} listed" in validation
+    study = " ".join((ROOT / "docs" / "study.md").read_text().split())
+    assert f"more than {cli.MAX_LIST_VALUES} values, or `--frames` above {MAX_DEMO_FRAMES}" in study
+    evaluation = (ROOT / "docs" / "evaluation.md").read_text()
+    assert f"N local processes (1-{MAX_WORKERS})" in evaluation
