@@ -95,8 +95,10 @@ def test_weighted_is_the_weighted_mean_over_gaussians(
             "reg"
         ]
         values = per_gaussian_values(out, name)  # (B, T, N)
-        denominator = float(weights.sum()) * t
-        expected = (weights[:, None] * values).sum() / denominator if denominator else 0.0
+        # relative to the largest weight: subnormal weights would round the products
+        unit = weights / weights.max() if float(weights.max()) > 0 else weights
+        denominator = float(unit.sum()) * t
+        expected = (unit[:, None] * values).sum() / denominator if denominator else 0.0
         torch.testing.assert_close(got, torch.as_tensor(expected).double(), rtol=1e-10, atol=1e-14)
         # scale-free in the weights
         rescaled = deformation_loss(
@@ -234,3 +236,15 @@ def test_weights_on_another_device_are_refused() -> None:
         deformation_loss(
             literal_output("paper"), reduction="weighted", gaussian_weights=torch.ones(1).cuda()
         )
+
+
+@pytest.mark.parametrize("scale", [2.225073858507e-311, 1e-300, 1.0, 1e300])
+def test_weighted_mean_is_exact_for_tiny_and_huge_weights(scale: float) -> None:
+    """Tiny (even subnormal) and huge weights give the mean: weights are taken relative to
+    the largest (hypothesis found a subnormal weight in CI, where w * v rounds)."""
+    out = random_output("paper", 1, 1, 1, 1)
+    expected = deformation_loss(out, reduction="mean")
+    weights = torch.full((1,), scale, dtype=torch.float64)
+    got = deformation_loss(out, reduction="weighted", gaussian_weights=weights)
+    for key in ("reg", "mask", "total"):
+        torch.testing.assert_close(got[key], expected[key], rtol=1e-12, atol=1e-14)

@@ -871,6 +871,10 @@ def _reduction_weights(
     weights = gaussian_weights.detach().to(reference.dtype)
     if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
         raise ValueError("gaussian_weights: expected finite weights >= 0")
+    # The weighted mean is scale-free: dividing by the largest weight first keeps tiny
+    # (subnormal) weights and their products with the values at full precision.
+    peak = weights.amax() if weights.numel() else weights.new_ones(())
+    weights = weights / torch.where(peak > 0, peak, torch.ones_like(peak))
     return weights.expand(b, n)
 
 
