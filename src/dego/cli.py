@@ -20,7 +20,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TextIO
 
@@ -170,18 +170,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument(
         "--frames",
-        type=_bounded_int(1, MAX_DEMO_FRAMES),
+        type=eval_command.bounded_int(1, MAX_DEMO_FRAMES),
         help=f"frames of the clip, 1-{MAX_DEMO_FRAMES} ({full['frames']}; quick {quick['frames']})",
     )
     demo.add_argument(
         "--iterations",
-        type=_bounded_int(0, MAX_ITERATIONS),
+        type=eval_command.bounded_int(0, MAX_ITERATIONS),
         help=f"optimiser steps per variant, 0-{MAX_ITERATIONS:,} ({full['iterations']}; "
         f"quick {quick['iterations']})",
     )
     demo.add_argument(
         "--gaussians",
-        type=_bounded_int(1, max_gaussians(MAX_DEMO_FRAMES)),
+        type=eval_command.bounded_int(1, max_gaussians(MAX_DEMO_FRAMES)),
         help=f"canonical Gaussians, at most one per camera pixel of the clip "
         f"({full['gaussians']}; quick {quick['gaussians']})",
     )
@@ -221,12 +221,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     study.add_argument(
         "--frames",
-        type=_bounded_int(2, MAX_DEMO_FRAMES),
+        type=eval_command.bounded_int(2, MAX_DEMO_FRAMES),
         help=f"frames per clip, 2-{MAX_DEMO_FRAMES} ({default.frames})",
     )
     study.add_argument(
         "--iterations",
-        type=_bounded_int(0, MAX_ITERATIONS),
+        type=eval_command.bounded_int(0, MAX_ITERATIONS),
         help=f"optimiser steps per fit, 0-{MAX_ITERATIONS:,} ({default.iterations})",
     )
     study.add_argument(
@@ -255,29 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _int(text: str) -> int:
-    """An int argument (a ValueError for anything else, argparse names the flag)."""
-    if not re.fullmatch(r"\s*[+-]?\d+\s*", text):
-        raise argparse.ArgumentTypeError(f"expected an int, got {text!r}")
-    return int(text)
-
-
-def _bounded_int(low: int, high: int) -> Callable[[str], int]:
-    """An argparse type: an int in ``[low, high]``."""
-
-    def parse(text: str) -> int:
-        value = _int(text)
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"expected an int in [{low}, {high}], got {text!r}")
-        return value
-
-    parse.__name__ = "int"
-    return parse
-
-
 def _seed(text: str) -> int:
     """A seed: an int in ``[0, MAX_SEED]``."""
-    value = _int(text)
+    value = eval_command.parse_int(text)
     if not 0 <= value <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"expected a seed in [0, {MAX_SEED}], got {text!r}")
     return value

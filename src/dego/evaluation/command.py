@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -98,14 +100,25 @@ def parse_device(text: str) -> str:
     return str(device)
 
 
-def _workers(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if not 1 <= value <= MAX_WORKERS:
-        raise argparse.ArgumentTypeError(f"expected an int in [1, {MAX_WORKERS}], got {text!r}")
-    return value
+def parse_int(text: str) -> int:
+    """An int argument (digits with an optional sign; anything else is an argparse error,
+    which names the flag)."""
+    if not re.fullmatch(r"\s*[+-]?\d+\s*", text):
+        raise argparse.ArgumentTypeError(f"expected an int, got {text!r}")
+    return int(text)
+
+
+def bounded_int(low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an int in ``[low, high]`` (``dego eval`` and the other commands)."""
+
+    def parse(text: str) -> int:
+        value = parse_int(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an int in [{low}, {high}], got {text!r}")
+        return value
+
+    parse.__name__ = "int"
+    return parse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -150,7 +163,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--workers",
-        type=_workers,
+        type=bounded_int(1, MAX_WORKERS),
         default=1,
         help=f"local processes, 1-{MAX_WORKERS} (torch.distributed, gloo)",
     )

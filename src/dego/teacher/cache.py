@@ -28,7 +28,7 @@ _SCALARS = {
     "dtype": "string",
     "sample_id": "string",
 }
-# dego._npz.write_npz's temporary name for an entry: ".<entry name>.<uuid4 hex>.tmp"
+# dego._atomic.temporary_name of an entry (write_npz writes it first): ".<name>.<uuid4 hex>.tmp"
 _TEMPORARY = re.compile(r"\.[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,199}_cam_\d+\.npz\.[0-9a-f]{32}\.tmp")
 _STALE_TEMPORARY_SECONDS = 3600.0
 """Temporary files of interrupted saves older than this (by mtime) are removed when a cache
@@ -261,7 +261,7 @@ def _check_header(
 
 def _remove_stale_temporaries(root: Path, max_age: float) -> None:
     """Remove the temporary files of interrupted saves in ``root`` older than ``max_age``
-    seconds (regular files named as ``dego._npz.write_npz`` names an entry's temporary);
+    seconds (regular files named as ``dego._atomic.temporary_name`` names an entry's);
     anything that cannot be removed (a read-only cache) is left, silently."""
     try:
         entries = os.scandir(root)
