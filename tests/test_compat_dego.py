@@ -72,7 +72,7 @@ def test_render_temporal_matches_splat_with_accumulated_depth() -> None:
     ours = render_temporal(gs, w2c, k, SIZE, features=features)  # "RGB+D"
     t = 1
     out = splat(
-        gs._map(lambda _, v: v[:, t]),
+        gs.map(lambda _, v: v[:, t]),
         w2c[:, t],
         k[:, t],
         SIZE,

@@ -112,7 +112,7 @@ def randomize_heads(module: DecoupledDeformation, *, std: float, seed: int) -> N
 
 def canonical_at_times(canonical: GaussianSet, t: int) -> GaussianSet:
     """The canonical ``(B,)`` set repeated to batch shape ``(B, T)``."""
-    return canonical._map(lambda _, v: v[:, None].expand(-1, t, *v.shape[1:]))
+    return canonical.map(lambda _, v: v[:, None].expand(-1, t, *v.shape[1:]))
 
 
 def quaternion_conjugate(q: Tensor) -> Tensor:
@@ -357,7 +357,7 @@ def test_samples_and_gaussians_are_deformed_independently(seed: int, preset: str
     out = module(canonical, features, times)
     for b in range(3):
         alone = module(
-            canonical._map(lambda _, v, b=b: v[b : b + 1]), features[b : b + 1], times[b : b + 1]
+            canonical.map(lambda _, v, b=b: v[b : b + 1]), features[b : b + 1], times[b : b + 1]
         )
         for name in PARAMETERS:
             torch.testing.assert_close(
@@ -371,7 +371,7 @@ def test_samples_and_gaussians_are_deformed_independently(seed: int, preset: str
                 getattr(single.gaussians, name)[:, 0], getattr(out.gaussians, name)[:, j]
             )
     perm = torch.randperm(5, generator=torch.Generator().manual_seed(seed))
-    permuted = module(canonical._map(lambda _, v: v[:, perm]), features[:, perm], times)
+    permuted = module(canonical.map(lambda _, v: v[:, perm]), features[:, perm], times)
     for name in PARAMETERS:
         torch.testing.assert_close(
             getattr(permuted.gaussians, name), getattr(out.gaussians, name)[:, :, perm]
@@ -615,12 +615,12 @@ BAD_INPUTS: dict[str, tuple[Callable[[GaussianSet, Tensor, Tensor], Inputs], typ
         "features: expected torch.float64",
     ),
     "gaussians (B, T)": (
-        lambda g, f, t: (g._map(lambda _, v: v[:, None]), f, t),
+        lambda g, f, t: (g.map(lambda _, v: v[:, None]), f, t),
         ValueError,
         "gaussians: expected batch shape",
     ),
     "gaussians unbatched": (
-        lambda g, f, t: (g._map(lambda _, v: v[0]), f, t),
+        lambda g, f, t: (g.map(lambda _, v: v[0]), f, t),
         ValueError,
         "gaussians: expected batch shape",
     ),

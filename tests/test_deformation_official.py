@@ -521,7 +521,7 @@ def test_with_canonical_appends_the_official_current_frame() -> None:
     full = out.with_canonical(canonical)
     assert full.num_times == 5 and full.canonical_last
     last = full.at(-1)
-    for name, value in canonical._items():
+    for name, value in canonical.items():
         assert torch.equal(getattr(last, name), value), name
     for name in ("means", "quats", "scales", "opacities"):
         assert torch.equal(getattr(full.gaussians, name)[:, :4], getattr(out.gaussians, name))
@@ -583,8 +583,8 @@ def test_with_canonical_any_shape(b: int, n: int, t: int, preset: str) -> None:
 def test_with_canonical_validates_the_set() -> None:
     out, canonical, _ = official_output()
     for value, match in [
-        (canonical._map(lambda _, v: v[:, :8]), "N = 8"),
-        (canonical._map(lambda _, v: v[:1]), r"batch shape \(1,\)"),
+        (canonical.map(lambda _, v: v[:, :8]), "N = 8"),
+        (canonical.map(lambda _, v: v[:1]), r"batch shape \(1,\)"),
         (canonical.to(torch.float32), "torch.float32"),
         (canonical.replace(features=None), "feature_dim None"),
     ]:

@@ -121,7 +121,7 @@ def test_binary_weights_select_gaussians(preset: str) -> None:
         out,
         deltas=chosen,
         rigid_mask=out.rigid_mask[..., keep],
-        gaussians=out.gaussians._map(lambda _, v: v[:, :, keep]),
+        gaussians=out.gaussians.map(lambda _, v: v[:, :, keep]),
         rigid_offsets=out.rigid_offsets[:, :, keep],
         nonrigid_offsets=out.nonrigid_offsets[:, :, keep],
     )

@@ -70,7 +70,7 @@ def assert_close_where(
 
 
 def requiring_grad(gs: GaussianSet) -> GaussianSet:
-    return gs._map(lambda _, t: t.detach().clone().requires_grad_(True))
+    return gs.map(lambda _, t: t.detach().clone().requires_grad_(True))
 
 
 def gradients(loss: Tensor, gs: GaussianSet) -> list[Tensor]:
@@ -320,7 +320,7 @@ def test_cube_home_voxel_uses_floor_of_the_mean() -> None:
 def test_permuting_gaussians_changes_nothing(gs: GaussianSet, which: int, seed: int) -> None:
     config = CONFIGS[which]
     perm = torch.randperm(gs.num_gaussians, generator=torch.Generator().manual_seed(seed))
-    permuted = gs._map(lambda _, t: t[:, perm])
+    permuted = gs.map(lambda _, t: t[:, perm])
     a, b = voxelize(gs, GRID, **config), voxelize(permuted, GRID, **config)
     torch.testing.assert_close(a.density, b.density, atol=1e-12, rtol=1e-12)
     torch.testing.assert_close(a.features, b.features, atol=1e-10, rtol=1e-10)
@@ -389,7 +389,7 @@ def test_adding_gaussians_never_lowers_probabilistic_density(
     gs: GaussianSet, extra: GaussianSet, neighborhood: str
 ) -> None:
     b = gs.means.shape[0]
-    extra = extra._map(lambda _, t: t[:1].expand(b, *t.shape[1:]))
+    extra = extra.map(lambda _, t: t[:1].expand(b, *t.shape[1:]))
     extra = extra.replace(
         features=torch.zeros(b, extra.num_gaussians, gs.features.shape[-1], dtype=gs.dtype)
     )
@@ -516,7 +516,7 @@ def test_gradients_are_finite_and_reach_every_field(gs: GaussianSet, which: int)
     # add a saturating Gaussian: opacity 1 exactly at a voxel centre (o g = 1)
     b = gs.means.shape[0]
     sat = single_gaussian((0.125, 0.125, 0.125), opacity=1.0, features=None)
-    sat = sat._map(lambda _, t: t.expand(b, *t.shape[1:]))
+    sat = sat.map(lambda _, t: t.expand(b, *t.shape[1:]))
     sat = sat.replace(features=torch.ones(b, 1, gs.features.shape[-1], dtype=gs.dtype))
     gs = requiring_grad(GaussianSet.cat([gs, sat]))
     out = voxelize(gs, GRID, **CONFIGS[which])

@@ -35,7 +35,7 @@ DTYPES = [torch.float32, torch.float64]
 
 
 def requiring_grad(gs: GaussianSet) -> GaussianSet:
-    return gs._map(lambda _, t: t.detach().clone().requires_grad_(True))
+    return gs.map(lambda _, t: t.detach().clone().requires_grad_(True))
 
 
 def unreached(case: str, dtype: torch.dtype) -> GaussianSet:

@@ -455,7 +455,7 @@ def test_features_of_another_dtype_raise_type_error(config: dict[str, Any]) -> N
 
 
 def requiring_grad(gs: GaussianSet) -> GaussianSet:
-    return gs._map(lambda _, t: t.detach().clone().requires_grad_(True))
+    return gs.map(lambda _, t: t.detach().clone().requires_grad_(True))
 
 
 def assert_finite_gradients(loss: Tensor, gs: GaussianSet) -> None:

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from dego import _serialization
 from dego._checks import check_int, check_positive
+from dego._geometry import quaternion_product, unit_quaternions
 from dego._policy import finite_check, float32_under_autocast, run_checks
 from dego._typing import typechecked
 from dego.deformation_checkpoint import (
@@ -28,7 +29,7 @@ from dego.deformation_checkpoint import (
     load_official_state_dict,
 )
 from dego.encoding import positional_encoding
-from dego.gaussians import GaussianSet, _normalize, quaternion_multiply
+from dego.gaussians import GaussianSet, quaternion_multiply
 from dego.grid import VoxelGrid
 
 Preset = Literal["paper", "official"]
@@ -150,7 +151,7 @@ class DeformationOutput(_serialization.DictForm):
         t = self.num_times
         if isinstance(t_index, bool) or not isinstance(t_index, int) or not -t <= t_index < t:
             raise IndexError(f"t_index: expected an int in [{-t}, {t}), got {t_index!r}")
-        return self.gaussians._map(lambda _, v: v[:, t_index])
+        return self.gaussians.map(lambda _, v: v[:, t_index])
 
     def _check_canonical(self, name: str, canonical: GaussianSet) -> None:
         deformed = self.gaussians
@@ -236,7 +237,7 @@ class DeformationOutput(_serialization.DictForm):
         def append_zeros(value: Tensor) -> Tensor:
             return torch.cat([value, value.new_zeros(value[:, :1].shape)], 1)
 
-        extended = self.gaussians._map(
+        extended = self.gaussians.map(
             lambda name, value: torch.cat([value, getattr(gaussians, name)[:, None]], 1)
         )
         rigid = append_zeros(self.rigid_offsets)
@@ -281,7 +282,7 @@ class DeformationOutput(_serialization.DictForm):
             k = per_step if value.ndim == 3 else per_step[..., None]
             return torch.where(k, value, fallback)
 
-        gaussians = self.gaussians._map(
+        gaussians = self.gaussians.map(
             lambda name, value: (
                 value if name == "features" else gate(value, getattr(canonical, name)[:, None])
             )
@@ -331,7 +332,7 @@ def _check_like_gaussians(
             f"gaussians: {gaussians.dtype} on {gaussians.device}, but the module's "
             f"parameters are {weight.dtype} on {weight.device}; move one with .to()"
         )
-    named = [*((f"gaussians.{name}", t) for name, t in gaussians._items()), ("features", features)]
+    named = [*((f"gaussians.{name}", t) for name, t in gaussians.items()), ("features", features)]
     run_checks([finite_check(name, t) for name, t in named])
 
 
@@ -643,11 +644,11 @@ class DecoupledDeformation(nn.Module):
         d_opacities = (m * raw["opacity"]).squeeze(-1)
         identity = torch.zeros_like(d_quats)
         identity[..., 0] = 1
-        increment = _normalize(identity + d_quats)
+        increment = unit_quaternions(identity + d_quats)
         canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
         deformed = {
             "means": canonical["means"] + d_means,
-            "quats": quaternion_multiply(canonical["quats"], increment),
+            "quats": quaternion_product(canonical["quats"], increment),
             "scales": canonical["scales"] * torch.exp(d_scales),
             "opacities": shift_opacity_logit(canonical["opacities"], d_opacities),
         }
@@ -661,11 +662,11 @@ class DecoupledDeformation(nn.Module):
         canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
         identity = torch.zeros_like(raw["rotation"])
         identity[..., 0] = 1
-        blended = m * _normalize(raw["rotation"] + _OFFICIAL_QUAT_EPS) + (1 - m) * identity
+        blended = m * unit_quaternions(raw["rotation"] + _OFFICIAL_QUAT_EPS) + (1 - m) * identity
         deformed = {
             "means": canonical["means"]
             + raw["rigid_offset"].clamp(-_OFFICIAL_OFFSET_CLAMP, _OFFICIAL_OFFSET_CLAMP),
-            "quats": quaternion_multiply(canonical["quats"], blended),
+            "quats": quaternion_product(canonical["quats"], blended),
             "scales": canonical["scales"]
             + m * raw["scale"].clamp(-_OFFICIAL_SCALE_CLAMP, _OFFICIAL_SCALE_CLAMP),
             "opacities": (canonical["opacities"] + mask * raw["opacity"].squeeze(-1)).clamp(0, 1),

@@ -19,6 +19,14 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from dego import _serialization
+from dego._geometry import (
+    QUATERNION_EPS,
+    conjugate_quaternions,
+    quaternion_product,
+    rotation_matrices,
+    scaled_rotation_gram,
+    unit_quaternions,
+)
 from dego._policy import check_dtype, float32_under_autocast
 from dego._typing import typechecked
 
@@ -26,39 +34,6 @@ try:
     from torch.compiler import is_compiling as _is_compiling
 except ImportError:  # torch < 2.3
     from torch._dynamo import is_compiling as _is_compiling
-
-QUATERNION_EPS = 1e-12
-"""Norms below this are treated as zero when normalising quaternions."""
-
-
-def _normalize(quats: Tensor, eps: float = QUATERNION_EPS) -> Tensor:
-    """``q / max(|q|, eps)``, with ``|q|`` computed from ``q / max_k |q_k|`` so that it
-    neither overflows (``|q| > 1.8e19`` in float32) nor underflows; finite for ``q = 0``."""
-    largest = quats.abs().amax(-1, keepdim=True)
-    scaled = quats / torch.where(largest > 0, largest, torch.ones_like(largest))
-    norm = torch.linalg.vector_norm(scaled, dim=-1, keepdim=True)  # in [1, 2], or 0 for q = 0
-    # the eps clamp: a (near-)zero quaternion maps to q / eps (0 for q = 0), never 0 / 0
-    return torch.where(norm * largest >= eps, scaled / norm.clamp_min(1), quats / eps)
-
-
-def _rotation_matrices(quats: Tensor) -> Tensor:
-    w, x, y, z = _normalize(quats).unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    rows = (
-        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-    )  # fmt: skip
-    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
-
-
-def _gram_of_scaled_rotation(quats: Tensor, column_scales: Tensor) -> Tensor:
-    """``(R diag(c)) (R diag(c))^T = R diag(c^2) R^T``, symmetric by construction."""
-    scaled = _rotation_matrices(quats) * column_scales.unsqueeze(-2)
-    return scaled @ scaled.transpose(-1, -2)
-
 
 # The public helpers check shapes; GaussianSet (validated once at construction) and other
 # internal callers use the private versions above so that checks are not paid per call.
@@ -85,7 +60,7 @@ def normalize_quaternions(
     gradients, never ``0 / 0``). The norm is taken after dividing by the largest
     ``|q_k|``, so huge quaternions (``|q| > 1.8e19`` in float32) do not overflow to 0.
     """
-    return _normalize(quats, eps)
+    return unit_quaternions(quats, eps)
 
 
 @typechecked
@@ -99,7 +74,7 @@ def quaternions_to_rotation_matrices(
     gives the identity (finite, through the ``eps`` clamp of :func:`normalize_quaternions`);
     :meth:`GaussianSet.check_values` and :func:`dego.voxelize` reject it.
     """
-    return _rotation_matrices(quats)
+    return rotation_matrices(quats)
 
 
 @typechecked
@@ -113,7 +88,7 @@ def build_covariances(
             promoted silently).
     """
     check_dtype("scales", scales, quats.dtype, "quats")
-    return _gram_of_scaled_rotation(quats, scales)
+    return scaled_rotation_gram(quats, scales)
 
 
 @typechecked
@@ -131,22 +106,15 @@ def build_precisions(
     """
     check_dtype("scales", scales, quats.dtype, "quats")
     _check_positive_scales(scales)
-    return _gram_of_scaled_rotation(quats, scales.reciprocal())
+    return scaled_rotation_gram(quats, scales.reciprocal())
 
 
-def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
+@typechecked
+def quaternion_multiply(
+    a: Float[Tensor, "*abatch 4"], b: Float[Tensor, "*bbatch 4"]
+) -> Float[Tensor, "*batch 4"]:
     """Hamilton product ``a (x) b`` of wxyz quaternions ``(..., 4)`` (broadcasting)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
+    return quaternion_product(a, b)
 
 
 @typechecked
@@ -203,7 +171,7 @@ def rotation_matrices_to_quaternions(
     )  # (*, 4, 4): row k is 4 q_k q
     best = candidates.diagonal(dim1=-2, dim2=-1).argmax(-1)  # the largest 4 q_k^2
     picked = torch.take_along_dim(candidates, best[..., None, None], dim=-2).squeeze(-2)
-    quats = _normalize(picked)
+    quats = unit_quaternions(picked)
     return torch.where(quats[..., :1] < 0, -quats, quats)
 
 
@@ -222,11 +190,6 @@ _OPACITY_SHAPES = ("N", "N1")
 def _check_option(name: str, value: object, valid: tuple[str, ...]) -> None:
     if not isinstance(value, str) or value not in valid:
         raise ValueError(f"{name}: expected one of {', '.join(map(repr, valid))}, got {value!r}")
-
-
-def _conjugate(quats: Tensor) -> Tensor:
-    """``(w, -x, -y, -z)``: the inverse rotation; exact (only signs change)."""
-    return torch.cat([quats[..., :1], -quats[..., 1:]], dim=-1)
 
 
 _TRAILING_DIMS: dict[str, int | None] = {
@@ -275,7 +238,7 @@ class GaussianSet(_serialization.DictForm):
         for name in self.FIELDS[:4]:
             if getattr(self, name) is None:
                 raise TypeError(f"{name}: is required (only features may be None)")
-        for name, value in self._items():
+        for name, value in self.items():
             if not isinstance(value, Tensor):
                 raise TypeError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
             if not value.is_floating_point():
@@ -284,7 +247,7 @@ class GaussianSet(_serialization.DictForm):
         if means.ndim < 2 or means.shape[-1] != 3:
             raise ValueError(f"means: expected shape (*batch, N, 3), got {tuple(means.shape)}")
         batch, n = tuple(means.shape[:-2]), means.shape[-2]
-        for name, value in self._items():
+        for name, value in self.items():
             channels = _TRAILING_DIMS[name]
             expected_ndim = len(batch) + (1 if channels is None else 2)
             leading = tuple(value.shape[: len(batch) + 1])
@@ -366,7 +329,7 @@ class GaussianSet(_serialization.DictForm):
         if quat_order == "xyzw":
             quats = quats.roll(1, dims=-1)
         if rotation == "R^T":
-            quats = _conjugate(quats)
+            quats = conjugate_quaternions(quats)
         if scale_space == "variance":
             negative = scales < 0
             if bool(negative.any()):
@@ -433,7 +396,7 @@ class GaussianSet(_serialization.DictForm):
         _check_option("opacity_shape", opacity_shape, _OPACITY_SHAPES)
         quats, scales, opacities = self.quats, self.scales, self.opacities
         if rotation == "R^T":
-            quats = _conjugate(quats)
+            quats = conjugate_quaternions(quats)
         if quat_order == "xyzw":
             quats = quats.roll(-1, dims=-1)
         if scale_space == "variance":
@@ -446,12 +409,13 @@ class GaussianSet(_serialization.DictForm):
             opacities = opacities.unsqueeze(-1)
         return self.means, quats, scales, opacities, self.features
 
-    def _items(self) -> list[tuple[str, Tensor]]:
+    def items(self) -> list[tuple[str, Tensor]]:
         """``(name, tensor)`` for every present field, in declaration order."""
         return [(n, getattr(self, n)) for n in self.FIELDS if getattr(self, n) is not None]
 
-    def _map(self, fn: Callable[[str, Tensor], Tensor]) -> GaussianSet:
-        return GaussianSet(**{name: fn(name, value) for name, value in self._items()})
+    def map(self, fn: Callable[[str, Tensor], Tensor]) -> GaussianSet:
+        """A new set with ``fn(name, tensor)`` applied to every present field."""
+        return GaussianSet(**{name: fn(name, value) for name, value in self.items()})
 
     # -- basic properties -------------------------------------------------------------
     @property
@@ -487,11 +451,11 @@ class GaussianSet(_serialization.DictForm):
     # -- geometry ---------------------------------------------------------------------
     def rotation_matrices(self) -> Float[Tensor, "*batch N 3 3"]:
         """Rotation matrices ``(*batch, N, 3, 3)`` of the (normalised) quaternions."""
-        return _rotation_matrices(self.quats)
+        return rotation_matrices(self.quats)
 
     def covariances(self) -> Float[Tensor, "*batch N 3 3"]:
         """Covariances ``R diag(s^2) R^T``, ``(*batch, N, 3, 3)``."""
-        return _gram_of_scaled_rotation(self.quats, self.scales)
+        return scaled_rotation_gram(self.quats, self.scales)
 
     def precisions(self) -> Float[Tensor, "*batch N 3 3"]:
         """Inverse covariances ``R diag(1/s^2) R^T``, ``(*batch, N, 3, 3)`` (no inversion).
@@ -502,12 +466,12 @@ class GaussianSet(_serialization.DictForm):
         """
         if not _is_compiling():
             _check_positive_scales(self.scales)
-        return _gram_of_scaled_rotation(self.quats, self.scales.reciprocal())
+        return scaled_rotation_gram(self.quats, self.scales.reciprocal())
 
     # -- tensor plumbing --------------------------------------------------------------
     def to(self, *args: Any, **kwargs: Any) -> GaussianSet:
         """Apply ``Tensor.to(*args, **kwargs)`` to every field (device and/or float dtype)."""
-        return self._map(lambda _, t: t.to(*args, **kwargs))
+        return self.map(lambda _, t: t.to(*args, **kwargs))
 
     @float32_under_autocast()
     @typechecked
@@ -535,11 +499,11 @@ class GaussianSet(_serialization.DictForm):
         rotation, translation = matrix[..., None, :3, :3], matrix[..., None, :3, 3]
         means = (rotation @ self.means.unsqueeze(-1)).squeeze(-1) + translation
         turn = rotation_matrices_to_quaternions(r)[..., None, :]
-        return dataclasses.replace(self, means=means, quats=quaternion_multiply(turn, self.quats))
+        return dataclasses.replace(self, means=means, quats=quaternion_product(turn, self.quats))
 
     def detach(self) -> GaussianSet:
         """A copy whose tensors are detached from the autograd graph."""
-        return self._map(lambda _, t: t.detach())
+        return self.map(lambda _, t: t.detach())
 
     def replace(self, **fields: Tensor | None) -> GaussianSet:
         """A new set with some fields replaced (re-validated); ``features=None`` drops features."""
@@ -578,7 +542,7 @@ class GaussianSet(_serialization.DictForm):
             raise IndexError(f"index: value {bad} is out of range for N={n}")
         index = index.long().remainder(n) if n else index.long()
         if index.ndim == 1:
-            return self._map(lambda name, t: t.index_select(_gaussian_axis(name, t), index))
+            return self.map(lambda name, t: t.index_select(_gaussian_axis(name, t), index))
         if tuple(index.shape[:-1]) != tuple(self.batch_shape):
             raise ValueError(
                 f"index: a batched index must have shape (*batch, K) with batch "
@@ -589,7 +553,7 @@ class GaussianSet(_serialization.DictForm):
             along = index if name == "opacities" else index.unsqueeze(-1)
             return torch.take_along_dim(t, along, dim=_gaussian_axis(name, t))
 
-        return self._map(gather)
+        return self.map(gather)
 
     @staticmethod
     def cat(sets: Sequence[GaussianSet]) -> GaussianSet:
@@ -615,7 +579,7 @@ class GaussianSet(_serialization.DictForm):
                     f"sets[{i}]: {s.dtype} on {s.device} differs from sets[0]'s "
                     f"{first.dtype} on {first.device}"
                 )
-        return first._map(
+        return first.map(
             lambda name, t: torch.cat([getattr(s, name) for s in sets], _gaussian_axis(name, t))
         )
 
@@ -634,7 +598,7 @@ class GaussianSet(_serialization.DictForm):
         GaussianSet.cat(sets)  # validates feature_dim / dtype / device agreement
         n_max = max(s.num_gaussians for s in sets)
         padded = [GaussianSet.cat([s, _padding_like(s, n_max - s.num_gaussians)]) for s in sets]
-        return padded[0]._map(lambda name, _: torch.stack([getattr(s, name) for s in padded]))
+        return padded[0].map(lambda name, _: torch.stack([getattr(s, name) for s in padded]))
 
     def reshape_batch(self, *shape: int) -> GaussianSet:
         """Reshape the batch axes to ``shape`` (``-1`` allowed); N and channels are kept."""
@@ -644,7 +608,7 @@ class GaussianSet(_serialization.DictForm):
             return t.reshape(*shape, *tail)
 
         try:
-            return self._map(reshape)
+            return self.map(reshape)
         except RuntimeError as err:
             raise ValueError(
                 f"shape: cannot reshape batch {tuple(self.batch_shape)} to {shape}"
@@ -665,7 +629,7 @@ class GaussianSet(_serialization.DictForm):
         When every opacity lies outside [0, 1] or every scale is negative, the message
         says they look like logits / log-scales and points to :meth:`from_tensors`.
         """
-        for name, value in self._items():
+        for name, value in self.items():
             bad = ~torch.isfinite(value)
             if bool(bad.any()):
                 raise ValueError(

@@ -29,6 +29,7 @@ from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
 from dego import _serialization
+from dego._geometry import QUATERNION_EPS, rotation_matrices, scaled_rotation_gram
 from dego._policy import (
     check_dtype,
     check_memory,
@@ -39,7 +40,7 @@ from dego._policy import (
 )
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
-from dego.gaussians import QUATERNION_EPS, GaussianSet, _gram_of_scaled_rotation, _rotation_matrices
+from dego.gaussians import GaussianSet
 from dego.grid import VoxelGrid
 
 Mode = Literal["additive", "probabilistic"]
@@ -564,7 +565,7 @@ def _voxelize(
     if config.neighborhood == "cube":
         # float64 from the input-dtype quats and scales: in float32 the rounding of these
         # entries is the largest error of the cube on grids whose centres are exact
-        precision = _gram_of_scaled_rotation(quats.double(), scales.double().reciprocal())
+        precision = scaled_rotation_gram(quats.double(), scales.double().reciprocal())
         rows, cols = (0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)  # xx, yy, zz, xy, xz, yz
         precision6 = precision[:, rows, cols]
         out = _voxelize_cube(
@@ -579,7 +580,7 @@ def _voxelize(
             out_dtype,
         )
     else:
-        rotations = _rotation_matrices(quats)
+        rotations = rotation_matrices(quats)
         whitening = (rotations / scales.unsqueeze(-2)).transpose(-1, -2).reshape(m, 9)
         with torch.no_grad():
             if config.neighborhood == "scale_cube":

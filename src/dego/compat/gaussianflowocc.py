@@ -186,7 +186,7 @@ class TemporalOffsetNetwork(nn.Module):
         def fixed(value: Tensor) -> Tensor:
             return value[:, None].expand(-1, t, *value.shape[1:])
 
-        deformed = {name: fixed(value) for name, value in gaussians._items()}
+        deformed = {name: fixed(value) for name, value in gaussians.items()}
         deformed["means"] = gaussians.means[:, None] + offsets
         zeros = offsets.new_zeros(())
         output = DeformationOutput(

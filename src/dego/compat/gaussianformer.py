@@ -39,8 +39,9 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from dego._geometry import conjugate_quaternions
 from dego._typing import typechecked
-from dego.gaussians import GaussianSet, _conjugate
+from dego.gaussians import GaussianSet
 from dego.grid import VoxelGrid
 from dego.voxelizer import voxelize
 
@@ -84,7 +85,7 @@ def _gaussians(
     with _argument_names():
         return GaussianSet(
             means=means,
-            quats=_conjugate(rotations),  # R^T diag(s^2) R -> dego's R diag(s^2) R^T
+            quats=conjugate_quaternions(rotations),  # R^T diag(s^2) R -> dego's R diag(s^2) R^T
             scales=scales,
             opacities=opacities,
             features=features,

@@ -496,7 +496,7 @@ class _FrozenCanonical:
             keep = movable[None] if name == "opacities" else movable[None, :, None]
             return torch.where(keep, field.detach(), field)
 
-        return gaussians._map(freeze)
+        return gaussians.map(freeze)
 
 
 def initial_model(

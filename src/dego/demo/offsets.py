@@ -71,7 +71,7 @@ class FrameOffsets(nn.Module):
         d_means = self.offsets[index][None]  # (1, T, N, 3)
         t, n = d_means.shape[1], d_means.shape[2]
         identity = torch.zeros(1, t, n, 4, dtype=d_means.dtype, device=d_means.device)
-        deformed = gaussians._map(lambda _, value: value[:, None].expand(-1, t, *value.shape[1:]))
+        deformed = gaussians.map(lambda _, value: value[:, None].expand(-1, t, *value.shape[1:]))
         deformed = deformed.replace(means=deformed.means + d_means)
         return DeformationOutput(
             gaussians=deformed,

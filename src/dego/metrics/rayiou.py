@@ -23,10 +23,10 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dego import _serialization
+from dego._geometry import rotation_matrices
 from dego._policy import check_finite, check_memory, run_checks
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL, NUM_CLASSES
-from dego.gaussians import _rotation_matrices
 from dego.grid import VoxelGrid
 from dego.metrics.confusion import as_label_tensor, labels_in_range
 from dego.metrics.counts import CountingMetric, class_names
@@ -42,7 +42,7 @@ def _pose_matrix(pose: Tensor) -> Tensor:
         return pose
     if pose.ndim == 2 and pose.shape[-1] == 7:
         matrix = torch.eye(4, dtype=torch.float64).repeat(pose.shape[0], 1, 1)
-        matrix[:, :3, :3] = _rotation_matrices(pose[:, 3:])
+        matrix[:, :3, :3] = rotation_matrices(pose[:, 3:])
         matrix[:, :3, 3] = pose[:, :3]
         return matrix
     raise ValueError(

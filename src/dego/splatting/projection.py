@@ -8,7 +8,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from dego.gaussians import _gram_of_scaled_rotation
+from dego._geometry import scaled_rotation_gram
 
 _MAX_RADIUS = 1 << 24  # pixels; keeps the integer conversion finite for degenerate inputs
 
@@ -104,7 +104,7 @@ def project_gaussians(
         [fx / z_safe, zero, -fx * tx / z_safe**2, zero, fy / z_safe, -fy * ty / z_safe**2], dim=-1
     ).unflatten(-1, (2, 3))
     # cov2d = (J R) Sigma (J R)^T, with Sigma = R_g diag(s^2) R_g^T shared by every camera.
-    cov3d = _gram_of_scaled_rotation(quats, scales).unsqueeze(1)  # (B, 1, N, 3, 3)
+    cov3d = scaled_rotation_gram(quats, scales).unsqueeze(1)  # (B, 1, N, 3, 3)
     jr = jacobian @ rotation  # (B, V, N, 2, 3)
     cov2d = jr @ cov3d @ jr.transpose(-1, -2)
     a = cov2d[..., 0, 0] + eps2d

@@ -181,7 +181,7 @@ def _check_inputs(
     transposed = outside & (cx >= 0) & (cx <= height) & (cy >= 0) & (cy <= width)
     opacities = gaussians.opacities
     out_of_range = (opacities < 0) | (opacities > 1)
-    finite = [(f"gaussians.{name}", t) for name, t in gaussians._items() if name != "features"]
+    finite = [(f"gaussians.{name}", t) for name, t in gaussians.items() if name != "features"]
     finite += [(name, t) for name, t in optional if t is not None]
     pinhole = (
         "intrinsics: expected pinhole matrices [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
