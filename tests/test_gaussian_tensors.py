@@ -255,7 +255,7 @@ def raw(n: int = 4, batch: tuple[int, ...] = (2,)) -> dict[str, torch.Tensor]:
 def test_all_logit_opacities_are_recognised() -> None:
     kwargs = raw()
     kwargs["opacities"] = torch.linspace(-6, -0.5, 8).reshape(2, 4)  # all outside [0, 1]
-    with pytest.raises(ValueError, match=r"opacities must lie in \[0, 1\].*logits") as info:
+    with pytest.raises(ValueError, match=r"opacities: .* lie outside \[0, 1\].*logits") as info:
         GaussianSet.from_tensors(**kwargs)
     assert 'from_tensors(..., opacity_space="logit")' in str(info.value)
     with pytest.raises(ValueError, match="looks like logits"):
@@ -266,7 +266,7 @@ def test_all_logit_opacities_are_recognised() -> None:
 def test_all_negative_scales_are_recognised() -> None:
     kwargs = raw()
     kwargs["scales"] = torch.full((2, 4, 3), -2.5)
-    with pytest.raises(ValueError, match=r"scales must be positive.*log-scales") as info:
+    with pytest.raises(ValueError, match=r"scales: .* not positive.*log-scales") as info:
         GaussianSet.from_tensors(**kwargs)
     assert 'from_tensors(..., scale_space="log")' in str(info.value)
     with pytest.raises(ValueError, match="looks like log-scales"):
@@ -290,7 +290,9 @@ def test_partial_violations_keep_the_plain_message(field: str, values: list[floa
     kwargs = raw(n=2, batch=())
     kwargs[field] = kwargs[field].clone()
     kwargs[field][0], kwargs[field][1] = values
-    expected = r"opacities must lie in \[0, 1\]" if field == "opacities" else "scales must be"
+    expected = (
+        r"opacities: .* outside \[0, 1\]" if field == "opacities" else "scales: .* not positive"
+    )
     with pytest.raises(ValueError, match=expected) as info:
         GaussianSet.from_tensors(**kwargs)
     message = str(info.value)

@@ -358,10 +358,10 @@ def test_mismatched_dtype_and_device_name_the_field(field: str) -> None:
     [
         ("means", float("nan"), "means: 1 of 24 values are not finite"),
         ("features", float("inf"), "features: 1 of 64 values are not finite"),
-        ("scales", 0.0, "scales must be positive"),
-        ("scales", -1.0, "scales must be positive"),
-        ("opacities", 1.5, r"opacities must lie in \[0, 1\]"),
-        ("opacities", -0.1, r"opacities must lie in \[0, 1\]"),
+        ("scales", 0.0, "scales: 1 of 24 values are not positive"),
+        ("scales", -1.0, "scales: 1 of 24 values are not positive"),
+        ("opacities", 1.5, r"opacities: 1 of 8 values lie outside \[0, 1\]"),
+        ("opacities", -0.1, r"opacities: 1 of 8 values lie outside \[0, 1\]"),
     ],
 )
 def test_check_values_rejects_invalid_values(field: str, value: float, expected: str) -> None:
@@ -376,7 +376,7 @@ def test_check_values_rejects_zero_quaternion_and_passes_valid_sets() -> None:
     kwargs = {k: v.clone() for k, v in fields().items()}
     assert GaussianSet(**kwargs).check_values() is not None
     kwargs["quats"][1, 2] = 0.0
-    with pytest.raises(ValueError, match="quats: 1 quaternions have zero norm"):
+    with pytest.raises(ValueError, match="quats: 1 of 8 quaternions have zero norm"):
         GaussianSet(**kwargs).check_values()
 
 

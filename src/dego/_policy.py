@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 from torch.utils._pytree import tree_leaves, tree_map
 
+from dego._geometry import QUATERNION_EPS
 from dego._typing import _is_compiling
 
 _DEFAULT_LIMIT = 64 * 2**30
@@ -204,6 +205,83 @@ def run_checks(checks: Sequence[Check]) -> None:
             raise error()
 
 
+LOG_SCALES_HINT = (
+    "every value is negative, which looks like log-scales: use "
+    'GaussianSet.from_tensors(..., scale_space="log")'
+)
+LOGITS_HINT = (
+    "every value lies outside [0, 1], which looks like logits: use "
+    'GaussianSet.from_tensors(..., opacity_space="logit")'
+)
+
+
+def _example(values: Tensor, bad: Tensor) -> str:
+    return f"{values[bad][0].item():.6g}"
+
+
+def gaussian_value_checks(
+    prefix: str,
+    *,
+    scales: Tensor,
+    opacities: Tensor,
+    quats: Tensor | None = None,
+    positive_scales: bool = True,
+    scales_needed_for: str = "",
+) -> list[Check]:
+    """The value :data:`Check` s of Gaussian fields, worded once for every entry point.
+
+    ``prefix`` goes before each field name (``"gaussians."`` in ``splat``). Scales must be
+    > 0 (``positive_scales=False``: only scales that are *all* negative are refused, as
+    log-scales); opacities in [0, 1]; quaternions (when given) of non-zero norm. When every
+    scale is negative or every opacity outside [0, 1] the message adds the log-scales /
+    logits hint. ``scales_needed_for`` explains why positivity matters (``"; ..."``).
+    """
+    outside = (opacities < 0) | (opacities > 1)
+
+    def scales_error() -> Exception:
+        if not positive_scales:
+            return ValueError(f"{prefix}scales: {LOG_SCALES_HINT}")
+        bad = ~(scales > 0)
+        message = (
+            f"{prefix}scales: {int(bad.sum())} of {scales.numel()} values are not positive "
+            f"(e.g. {_example(scales, bad)}){scales_needed_for}"
+        )
+        if bool((scales < 0).all()):
+            message += f"; {LOG_SCALES_HINT}"
+        return ValueError(message)
+
+    def opacities_error() -> Exception:
+        message = (
+            f"{prefix}opacities: {int(outside.sum())} of {opacities.numel()} values lie "
+            f"outside [0, 1] (e.g. {_example(opacities, outside)})"
+        )
+        if bool(outside.all()):
+            message += f"; {LOGITS_HINT}"
+        return ValueError(message)
+
+    if positive_scales:
+        scales_ok = (scales > 0).all()
+        scales_summary = f"{prefix}scales: values are not positive"
+    else:
+        scales_ok = ~(scales < 0).all() | (scales.numel() == 0)
+        scales_summary = f"{prefix}scales: every value is negative (log-scales?)"
+    checks: list[Check] = [
+        (scales_ok, scales_summary, scales_error),
+        (~outside.any(), f"{prefix}opacities: values lie outside [0, 1]", opacities_error),
+    ]
+    if quats is not None:
+        zero = torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS
+
+        def quats_error() -> Exception:
+            return ValueError(
+                f"{prefix}quats: {int(zero.sum())} of {quats.shape[:-1].numel()} quaternions "
+                f"have zero norm (<= {QUATERNION_EPS:g}) and encode no rotation"
+            )
+
+        checks.append((~zero.any(), f"{prefix}quats: quaternions have zero norm", quats_error))
+    return checks
+
+
 def check_finite(name: str, tensor: Tensor) -> None:
     """``ValueError`` naming ``name`` when ``tensor`` holds NaN or infinite values."""
     run_checks([finite_check(name, tensor)])
@@ -211,6 +289,8 @@ def check_finite(name: str, tensor: Tensor) -> None:
 
 __all__ = [
     "HALF_DTYPES",
+    "LOGITS_HINT",
+    "LOG_SCALES_HINT",
     "Check",
     "check_dtype",
     "check_finite",
@@ -218,6 +298,7 @@ __all__ = [
     "compute_dtype",
     "finite_check",
     "float32_under_autocast",
+    "gaussian_value_checks",
     "get_memory_limit",
     "memory_limit",
     "run_checks",

@@ -27,7 +27,13 @@ from dego._geometry import (
     scaled_rotation_gram,
     unit_quaternions,
 )
-from dego._policy import check_dtype, float32_under_autocast
+from dego._policy import (
+    check_dtype,
+    finite_check,
+    float32_under_autocast,
+    gaussian_value_checks,
+    run_checks,
+)
 from dego._typing import typechecked
 
 try:
@@ -41,13 +47,13 @@ except ImportError:  # torch < 2.3
 
 def _check_positive_scales(scales: Tensor) -> None:
     """``ValueError`` naming ``scales`` unless every value is > 0 (NaN fails too)."""
-    bad = ~(scales > 0)
-    if bool(bad.any()):
-        raise ValueError(
-            f"scales: {int(bad.sum())} of {scales.numel()} values are not positive (e.g. "
-            f"{scales[bad][0].item():.6g}); precisions need 1/s^2 of positive standard "
-            "deviations"
-        )
+    check = gaussian_value_checks(
+        "",
+        scales=scales,
+        opacities=scales.new_zeros(()),
+        scales_needed_for="; precisions need 1/s^2 of positive standard deviations",
+    )[0]
+    run_checks([check])
 
 
 @typechecked
@@ -629,37 +635,12 @@ class GaussianSet(_serialization.DictForm):
         When every opacity lies outside [0, 1] or every scale is negative, the message
         says they look like logits / log-scales and points to :meth:`from_tensors`.
         """
-        for name, value in self.items():
-            bad = ~torch.isfinite(value)
-            if bool(bad.any()):
-                raise ValueError(
-                    f"{name}: {int(bad.sum())} of {value.numel()} values are not finite"
-                )
-        outside = (self.opacities < 0) | (self.opacities > 1)
-        # (field, violations, rule, suspicious when all of these hold, what it looks like)
-        rules = (
-            ("scales", self.scales <= 0, "must be positive standard deviations",
-             self.scales < 0, "every value is negative, which looks like log-scales: "
-             'use GaussianSet.from_tensors(..., scale_space="log")'),
-            ("opacities", outside, "must lie in [0, 1]",
-             outside, "every value lies outside [0, 1], which looks like logits: "
-             'use GaussianSet.from_tensors(..., opacity_space="logit")'),
-        )  # fmt: skip
-        for name, bad, what, suspicious, hint in rules:
-            if bool(bad.any()):
-                offending = getattr(self, name)[bad]
-                message = (
-                    f"{name} {what}; {offending.numel()} values violate this "
-                    f"(e.g. {offending[0].item():.6g})"
-                )
-                if bool(suspicious.all()):
-                    message += f"; {hint}"
-                raise ValueError(message)
-        zero = torch.linalg.vector_norm(self.quats, dim=-1) <= QUATERNION_EPS
-        if bool(zero.any()):
-            raise ValueError(
-                f"quats: {int(zero.sum())} quaternions have zero norm and encode no rotation"
+        run_checks(
+            [finite_check(name, value) for name, value in self.items()]
+            + gaussian_value_checks(
+                "", scales=self.scales, opacities=self.opacities, quats=self.quats
             )
+        )
         return self
 
 
