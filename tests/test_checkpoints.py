@@ -34,7 +34,7 @@ from dego import (
     TeacherOutput,
     VoxelGrid,
     VoxelOutput,
-    _serialization,
+    _safe_globals,
     splat,
     voxelize,
 )
@@ -324,8 +324,8 @@ def test_a_corrupt_checkpoint_is_refused_on_load() -> None:
 
 @needs_safe_globals
 def test_only_dego_classes_are_allowlisted() -> None:
-    assert _serialization.register_safe_globals()
+    assert _safe_globals.register_safe_globals()
     allowed = torch.serialization.get_safe_globals()
     ours = [entry for entry in allowed if getattr(entry, "__module__", "").startswith("dego")]
-    assert set(ours) == set(_serialization.safe_types())
+    assert set(ours) == set(_safe_globals.safe_types())
     assert all(isinstance(entry, type) and dataclasses.is_dataclass(entry) for entry in ours)

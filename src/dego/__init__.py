@@ -4,7 +4,7 @@ Implements the building blocks of "Deformable Gaussian Occupancy" (DeGO, CVPR 20
 so that they run on CPU and GPU, in float32 and float64, with checked shapes.
 """
 
-from dego import _serialization
+from dego import _safe_globals
 from dego._policy import get_memory_limit, memory_limit, set_memory_limit
 from dego._version import __version__
 from dego.cameras import apply_image_aug, resize_crop_intrinsics, split_projection
@@ -74,7 +74,7 @@ from dego.voxelizer import GaussianVoxelizer, VoxelOutput, voxelize
 
 # GaussianSet and the result dataclasses load with torch.load(weights_only=True) once dego
 # is imported (torch >= 2.4); see docs/foundation.md, "Saving and loading".
-_serialization.register_safe_globals()
+_safe_globals.register_safe_globals()
 
 __all__ = [
     "CLASS_GROUPS",

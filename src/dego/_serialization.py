@@ -22,7 +22,6 @@ from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any, TypeVar
 
-import torch
 from beartype import BeartypeConf
 from beartype.door import is_bearable
 from torch import Tensor
@@ -236,41 +235,4 @@ class DictForm:
         set_state(self, state)
 
 
-def safe_types() -> tuple[type, ...]:
-    """The classes :func:`register_safe_globals` allowlists for ``weights_only`` loading:
-    those with checked pickle state, and the dataclasses nested in them."""
-    from dego.deformation import DeformationDeltas, DeformationLossWeights, DeformationOutput
-    from dego.gaussians import GaussianSet
-    from dego.metrics.rayiou import RayIoUReport
-    from dego.metrics.report import OccupancyReport
-    from dego.splatting.projection import Projection
-    from dego.splatting.splatter import SplatOutput
-    from dego.teacher.factorized import TeacherOutput
-    from dego.voxelizer import VoxelOutput
-
-    return (
-        GaussianSet,
-        SplatOutput,
-        Projection,
-        VoxelOutput,
-        DeformationOutput,
-        DeformationDeltas,
-        DeformationLossWeights,
-        TeacherOutput,
-        OccupancyReport,
-        RayIoUReport,
-    )
-
-
-def register_safe_globals() -> bool:
-    """Allowlist :func:`safe_types` for ``torch.load(weights_only=True)``; ``False`` (and
-    nothing registered) on torch < 2.4, which has no ``add_safe_globals``: load the
-    ``to_dict`` form there."""
-    add = getattr(torch.serialization, "add_safe_globals", None)
-    if add is None:
-        return False
-    add(list(safe_types()))
-    return True
-
-
-__all__ = ["from_dict", "get_state", "register_safe_globals", "safe_types", "set_state", "to_dict"]
+__all__ = ["from_dict", "get_state", "set_state", "to_dict"]

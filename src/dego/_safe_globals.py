@@ -1,0 +1,49 @@
+"""The classes that ``torch.load(weights_only=True)`` may rebuild, and their registration.
+
+Kept apart from :mod:`dego._serialization` (which every result class imports) so that
+listing the classes creates no import circle: only ``dego/__init__`` imports this module.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from dego.deformation import DeformationDeltas, DeformationLossWeights, DeformationOutput
+from dego.gaussians import GaussianSet
+from dego.metrics.rayiou import RayIoUReport
+from dego.metrics.report import OccupancyReport
+from dego.splatting.projection import Projection
+from dego.splatting.splatter import SplatOutput
+from dego.teacher.factorized import TeacherOutput
+from dego.voxelizer import VoxelOutput
+
+
+def safe_types() -> tuple[type, ...]:
+    """The classes :func:`register_safe_globals` allowlists for ``weights_only`` loading:
+    those with checked pickle state, and the dataclasses nested in them."""
+    return (
+        GaussianSet,
+        SplatOutput,
+        Projection,
+        VoxelOutput,
+        DeformationOutput,
+        DeformationDeltas,
+        DeformationLossWeights,
+        TeacherOutput,
+        OccupancyReport,
+        RayIoUReport,
+    )
+
+
+def register_safe_globals() -> bool:
+    """Allowlist :func:`safe_types` for ``torch.load(weights_only=True)``; ``False`` (and
+    nothing registered) on torch < 2.4, which has no ``add_safe_globals``: load the
+    ``to_dict`` form there."""
+    add = getattr(torch.serialization, "add_safe_globals", None)
+    if add is None:
+        return False
+    add(list(safe_types()))
+    return True
+
+
+__all__ = ["register_safe_globals", "safe_types"]
