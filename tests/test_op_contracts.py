@@ -307,15 +307,11 @@ CASES = [
                 "free_label",
                 lambda kw: {**kw, "free_label": kw["confusion"].shape[0]},
                 ValueError,
-                xfail="free_label >= C raises a bare IndexError ('index 4 is out of bounds') "
-                "that does not name free_label",
             ),
             BadInput(
                 "float",
                 "confusion",
                 with_value("confusion", lambda t: t.double()),
-                xfail="a floating (C, C) confusion is accepted and summed silently (no "
-                "jaxtyping annotation; confusion_matrix's int64 counts are expected)",
             ),
         ),
     ),
@@ -332,16 +328,12 @@ CASES = [
                 "ego2global",
                 with_value("ego2global", lambda t: t[:, :3, :3]),
                 (TypeError, ValueError),
-                xfail="a (F, 3, 3) ego2global raises ValueError naming 'poses', which is not "
-                "a parameter (neither ego2global nor lidar2ego is named)",
             ),
             BadInput(
                 "nan",
                 "ego2global",
                 with_nan("ego2global", 3),
                 ValueError,
-                xfail="a NaN pose is not rejected: the NaN origin fails the |x| < xy_limit "
-                "filter and is silently dropped (fewer origins, no error)",
             ),
         ),
     ),

@@ -625,10 +625,18 @@ def test_matches_the_ego_pose_dataset_recipe() -> None:
 
 def test_bad_pose_input() -> None:
     ego, lidar = poses7([IDENTITY7] * 3), poses7([IDENTITY7] * 3)
-    with pytest.raises(ValueError, match="poses"):
+    with pytest.raises(ValueError, match="ego2global: expected"):
         lidar_origins(ego[:, :3], lidar, 0)
-    with pytest.raises(ValueError, match="poses"):
+    with pytest.raises(ValueError, match="lidar2ego: expected"):
         lidar_origins(ego, torch.zeros(3, 4, 3, dtype=torch.float64), 0)
+    with pytest.raises(ValueError, match="ego2global: 1 values are not finite"):
+        lidar_origins(
+            ego.index_put(
+                (torch.tensor(1), torch.tensor(0)), torch.tensor(torch.nan, dtype=ego.dtype)
+            ),
+            lidar,
+            0,
+        )
     with pytest.raises(ValueError, match="lidar2ego: 2 frames"):
         lidar_origins(ego, lidar[:2], 0)
     for index in (3, -4):

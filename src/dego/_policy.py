@@ -232,7 +232,8 @@ def gaussian_value_checks(
 
     ``prefix`` goes before each field name (``"gaussians."`` in ``splat``). Scales must be
     > 0 (``positive_scales=False``: only scales that are *all* negative are refused, as
-    log-scales); opacities in [0, 1]; quaternions (when given) of non-zero norm. When every
+    log-scales); quaternions (when given) of non-zero norm; opacities in [0, 1], checked in
+    this order. When every
     scale is negative or every opacity outside [0, 1] the message adds the log-scales /
     logits hint. ``scales_needed_for`` explains why positivity matters (``"; ..."``).
     """
@@ -265,10 +266,7 @@ def gaussian_value_checks(
     else:
         scales_ok = ~(scales < 0).all() | (scales.numel() == 0)
         scales_summary = f"{prefix}scales: every value is negative (log-scales?)"
-    checks: list[Check] = [
-        (scales_ok, scales_summary, scales_error),
-        (~outside.any(), f"{prefix}opacities: values lie outside [0, 1]", opacities_error),
-    ]
+    checks: list[Check] = [(scales_ok, scales_summary, scales_error)]
     if quats is not None:
         zero = torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS
 
@@ -279,6 +277,8 @@ def gaussian_value_checks(
             )
 
         checks.append((~zero.any(), f"{prefix}quats: quaternions have zero norm", quats_error))
+    opacities_summary = f"{prefix}opacities: values lie outside [0, 1]"
+    checks.append((~outside.any(), opacities_summary, opacities_error))
     return checks
 
 

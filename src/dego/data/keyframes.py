@@ -17,7 +17,7 @@ import torch
 from jaxtyping import Float64
 from torch import Tensor
 
-from dego.metrics.rayiou import _pose_matrix
+from dego.metrics.rayiou import pose_matrices
 
 __all__ = ["Keyframe"]
 
@@ -101,4 +101,4 @@ def _pose_matrices(translations: np.ndarray, rotations: np.ndarray) -> Tensor:
     The quaternions are normalised first (as pyquaternion's ``rotation_matrix``).
     """
     rotations = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
-    return _pose_matrix(torch.from_numpy(np.concatenate([translations, rotations], axis=-1)))
+    return pose_matrices("poses", torch.from_numpy(np.concatenate([translations, rotations], axis=-1)))

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from dego._policy import run_checks
-from dego._typing import _is_compiling
+from dego._typing import _is_compiling, typechecked
 
 _SMALL_INTS = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 
@@ -99,6 +99,7 @@ def _check_range(name: str, labels: Tensor, num_classes: int, allowed: int | Non
     run_checks([(~bad.any(), f"{name}: a label is out of range 0..{num_classes - 1}", error)])
 
 
+@typechecked
 def confusion_matrix(
     pred: Tensor | np.ndarray,
     gt: Tensor | np.ndarray,
@@ -159,7 +160,7 @@ def confusion_matrix(
     span = num_classes * (max_label + 1)
     key_dtype = torch.int16 if 2 * span <= torch.iinfo(torch.int16).max else torch.int64
     gt_key = gt.to(key_dtype)
-    if not direct:
+    if ignore_label is not None and not direct:
         gt_key = gt_key.masked_fill(gt == ignore_label, num_classes)
     key = torch.add(pred.to(key_dtype), gt_key, alpha=num_classes)
     if mask is not None:
@@ -192,12 +193,25 @@ def _check_ignore_label(ignore_label: object, num_classes: int) -> int | None:
     return ignore_label
 
 
+@typechecked
 def binary_occupancy_confusion(confusion: Tensor, free_label: int) -> Tensor:
     """``(2, 2)`` occupied/free matrix (index 0 occupied, 1 free; rows gt) from a ``(C, C)`` one.
 
     Equal to relabelling gt and pred as ``label != free -> 0``, ``free -> 1`` on the same
     voxels and counting, as the reference geometric IoU does.
+
+    Raises:
+        TypeError: ``confusion`` not a square integer matrix.
+        ValueError: ``free_label`` outside ``0..C-1``.
     """
+    if confusion.ndim != 2 or confusion.shape[0] != confusion.shape[1]:
+        raise TypeError(f"confusion: expected a (C, C) matrix, got {tuple(confusion.shape)}")
+    if confusion.is_floating_point() or confusion.is_complex() or confusion.dtype == torch.bool:
+        raise TypeError(f"confusion: expected integer counts, got {confusion.dtype}")
+    if isinstance(free_label, bool) or not 0 <= free_label < confusion.shape[0]:
+        raise ValueError(
+            f"free_label: expected an int in 0..{confusion.shape[0] - 1}, got {free_label!r}"
+        )
     is_free = torch.zeros(confusion.shape[0], dtype=torch.long, device=confusion.device)
     is_free[free_label] = 1
     out = torch.zeros(2, 2, dtype=confusion.dtype, device=confusion.device)

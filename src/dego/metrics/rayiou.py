@@ -25,7 +25,7 @@ from torch import Tensor
 from dego import _serialization
 from dego._geometry import rotation_matrices
 from dego._policy import check_finite, check_memory, run_checks
-from dego._typing import typechecked
+from dego._typing import check_tensor_fields, typechecked
 from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.grid import VoxelGrid
 from dego.metrics.confusion import as_label_tensor, labels_in_range
@@ -35,9 +35,11 @@ from dego.raycast import _cast_bytes, _cast_product, _cast_sizes, generate_lidar
 DEFAULT_THRESHOLDS = (1.0, 2.0, 4.0)
 
 
-def _pose_matrix(pose: Tensor) -> Tensor:
+def pose_matrices(name: str, pose: Tensor) -> Tensor:
     """``(F, 4, 4)`` float64 from ``(F, 4, 4)`` matrices or ``(F, 7)`` translation + wxyz."""
     pose = pose.double()
+    if not bool(torch.isfinite(pose).all()):
+        raise ValueError(f"{name}: {int((~torch.isfinite(pose)).sum())} values are not finite")
     if pose.ndim == 3 and pose.shape[-2:] == (4, 4):
         return pose
     if pose.ndim == 2 and pose.shape[-1] == 7:
@@ -46,7 +48,7 @@ def _pose_matrix(pose: Tensor) -> Tensor:
         matrix[:, :3, 3] = pose[:, :3]
         return matrix
     raise ValueError(
-        f"poses: expected (F, 4, 4) matrices or (F, 7) translation + wxyz, got {tuple(pose.shape)}"
+        f"{name}: expected (F, 4, 4) matrices or (F, 7) translation + wxyz, got {tuple(pose.shape)}"
     )
 
 
@@ -75,7 +77,7 @@ def lidar_origins(
     Returns:
         ``(K, 3)`` float64 origins, K <= ``max_origins``.
     """
-    g, lid = _pose_matrix(ego2global), _pose_matrix(lidar2ego)
+    g, lid = pose_matrices("ego2global", ego2global), pose_matrices("lidar2ego", lidar2ego)
     frames = g.shape[0]
     if lid.shape[0] != frames:
         raise ValueError(f"lidar2ego: {lid.shape[0]} frames, ego2global has {frames}")
@@ -110,6 +112,9 @@ class RayIoUReport(_serialization.DictForm):
         class_ids: the classes averaged.
         class_names: names of all C labels.
     """
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
 
     thresholds: tuple[float, ...]
     per_class: Tensor
