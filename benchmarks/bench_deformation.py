@@ -23,7 +23,7 @@ from harness import benchmark_parser, run_comparison
 def objective(out: DeformationOutput) -> torch.Tensor:
     gs = out.gaussians
     rendered = gs.means.square().mean() + gs.scales.mean() + gs.opacities.mean()
-    return deformation_loss(out)["total"] + rendered + gs.quats.square().mean()
+    return deformation_loss(out).total + rendered + gs.quats.square().mean()
 
 
 def main() -> None:

@@ -252,7 +252,7 @@ def deformation() -> Figure:
             + (deformed.scales.log() - target_scales.log()).square().sum(-1).mean()
             + (1 - dot.square()).mean()
         )
-        loss = error + deformation_loss(out, weights)["total"]
+        loss = error + deformation_loss(out, weights).total
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

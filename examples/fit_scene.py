@@ -94,7 +94,7 @@ def main() -> None:
             deformed = deformation(canonical, model.latent[None], clip.times[index : index + 1])
             deformed = deformed.gated(keep, canonical)
             gaussians = balance_deformation_gradients(deformed.at(0), canonical, keep)
-            deformation_term = dego.deformation_loss(deformed)["total"]
+            deformation_term = dego.deformation_loss(deformed).total
         rendered = dego.splat(
             gaussians,
             clip.world_to_cam[index : index + 1],

@@ -300,7 +300,7 @@ def test_output_shapes(preset: str, t: int) -> None:
     assert out.rigid_offsets.shape == out.nonrigid_offsets.shape == (b, t, n, 3)
     assert out.preset == preset and out.loss_weights == module.loss_weights
     for name in ("reg", "mask", "total"):
-        assert deformation_loss(out)[name].shape == ()
+        assert getattr(deformation_loss(out), name).shape == ()
 
 
 @pytest.mark.parametrize("preset", PRESETS)
@@ -437,9 +437,9 @@ def literal_output(preset: str) -> DeformationOutput:
 def test_loss_hand_computed(preset: str, reg: float) -> None:
     losses = deformation_loss(literal_output(preset))
     mask = 0.25 * 0.75
-    assert losses["reg"].item() == pytest.approx(reg, rel=1e-14)
-    assert losses["mask"].item() == pytest.approx(mask, rel=1e-14)
-    assert losses["total"].item() == pytest.approx(10 * reg + 0.5 * mask, rel=1e-14)
+    assert losses.reg.item() == pytest.approx(reg, rel=1e-14)
+    assert losses.mask.item() == pytest.approx(mask, rel=1e-14)
+    assert losses.total.item() == pytest.approx(10 * reg + 0.5 * mask, rel=1e-14)
     weights = DeformationLossWeights(
         means=2.0, quats=0.0, scales=3.0, opacities=0.5, reg=0.1, mask=7.0
     )
@@ -450,8 +450,8 @@ def test_loss_hand_computed(preset: str, reg: float) -> None:
         else {"means": 1.5, "quats": 0.125, "scales": 1 / 6, "opacities": 2.0}
     )
     custom_reg = 2.0 * per_param["means"] + 3.0 * per_param["scales"] + 0.5 * per_param["opacities"]
-    assert custom["reg"].item() == pytest.approx(custom_reg, rel=1e-14)
-    assert custom["total"].item() == pytest.approx(0.1 * custom_reg + 7.0 * mask, rel=1e-14)
+    assert custom.reg.item() == pytest.approx(custom_reg, rel=1e-14)
+    assert custom.total.item() == pytest.approx(0.1 * custom_reg + 7.0 * mask, rel=1e-14)
 
 
 @pytest.mark.parametrize("preset", PRESETS)
@@ -481,13 +481,13 @@ def test_loss_matches_a_manual_sum_over_the_output(preset: str) -> None:
     values = [x for row in last for x in row]
     mask = sum(x * (1 - x) for x in values) / len(values)
     losses = deformation_loss(out)  # the module's loss weights by default
-    assert losses["reg"].item() == pytest.approx(reg, rel=1e-12)
-    assert losses["mask"].item() == pytest.approx(mask, rel=1e-12)
-    assert losses["total"].item() == pytest.approx(4.0 * reg + 0.25 * mask, rel=1e-12)
+    assert losses.reg.item() == pytest.approx(reg, rel=1e-12)
+    assert losses.mask.item() == pytest.approx(mask, rel=1e-12)
+    assert losses.total.item() == pytest.approx(4.0 * reg + 0.25 * mask, rel=1e-12)
     explicit = deformation_loss(out, weights)
     default = deformation_loss(out, DeformationLossWeights())
-    assert torch.equal(explicit["total"], losses["total"])
-    assert not torch.allclose(default["total"], losses["total"])
+    assert torch.equal(explicit.total, losses.total)
+    assert not torch.allclose(default.total, losses.total)
 
 
 @pytest.mark.parametrize("preset", PRESETS)
@@ -499,7 +499,7 @@ def test_mask_loss_at_the_ends_and_the_middle(preset: str, bias: float, expected
         module.mask_head[-1].bias.fill_(bias)
     canonical, features = make_inputs(2, 4)
     out = module(canonical, features, times_tensor())
-    assert deformation_loss(out)["mask"].item() == expected
+    assert deformation_loss(out).mask.item() == expected
 
 
 @pytest.mark.parametrize("preset", PRESETS)
@@ -509,7 +509,7 @@ def test_gradients_reach_every_parameter(preset: str) -> None:
     canonical, features = make_inputs(2, 8)
     out = module(canonical, features, times_tensor([0.0, 0.7, 1.5]))
     g = out.gaussians
-    loss = deformation_loss(out)["total"] + sum(
+    loss = deformation_loss(out).total + sum(
         getattr(g, name).sum() for name in ("means", "scales", "opacities", "quats")
     )
     loss.backward()
@@ -561,7 +561,7 @@ def test_training_separates_rigid_from_nonrigid_gaussians() -> None:
         initial = fit_error(module(canonical, features, times)).item()
     for _ in range(150):
         out = module(canonical, features, times)
-        loss = fit_error(out) + deformation_loss(out, weights)["total"]
+        loss = fit_error(out) + deformation_loss(out, weights).total
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -788,7 +788,7 @@ def test_loss_is_finite_for_zero_gaussians(preset: str) -> None:
     out = module(canonical, features, times_tensor())
     losses = deformation_loss(out)
     for name in ("reg", "mask", "total"):
-        assert torch.isfinite(losses[name]), (name, losses[name])
+        assert torch.isfinite(getattr(losses, name)), (name, getattr(losses, name))
 
 
 @pytest.mark.parametrize("preset", PRESETS)
@@ -802,7 +802,7 @@ def test_devices_dtypes_and_backward(device: torch.device, dtype: torch.dtype, p
         value = getattr(out.gaussians, name)
         assert value.dtype == dtype and value.device.type == device.type, name
     assert out.rigid_mask.dtype == dtype and out.rigid_mask.device.type == device.type
-    deformation_loss(out)["total"].add(out.gaussians.means.sum()).backward()
+    deformation_loss(out).total.add(out.gaussians.means.sum()).backward()
     assert features.grad is not None and torch.isfinite(features.grad).all()
     reference = make_module(preset)
     randomize_last_layers(reference)
@@ -1143,8 +1143,8 @@ def test_fixed_mask_gets_no_mask_gradient_and_loss() -> None:
     canonical, features = make_inputs(1, 5)
     out = module(canonical, features, times_tensor())
     losses = deformation_loss(out)
-    assert float(losses["mask"]) == 0.0
-    losses["total"].backward()
+    assert float(losses.mask) == 0.0
+    losses.total.backward()
     assert all(p.grad is None for p in module.mask_head.parameters())
     assert module.heads["rigid_offset"][-1].weight.grad is not None
 

@@ -30,7 +30,6 @@ from dego.deformation import (
     StateDictMismatchError,
     deformation_loss,
 )
-from dego.deformation_checkpoint import official_tensors
 from tests.strategies import make_gaussian_set
 
 SIZES = {
@@ -407,7 +406,7 @@ def test_expected_official_shapes_match_the_module() -> None:
 
     for sizes in [SIZES, {**SIZES, "depth": 1, "pos_levels": 0, "feature_dim": 0}]:
         module = DecoupledDeformation(preset="official", head_hidden=sizes["hidden_dim"], **sizes)
-        shapes = {k: tuple(v.shape) for k, v in official_tensors(module).items()}
+        shapes = {k: tuple(v.shape) for k, v in module.to_official_state_dict().items()}
         assert list(
             _official_shapes({**sizes, "head_hidden": sizes["hidden_dim"]}).items()
         ) == list(shapes.items())
@@ -458,7 +457,7 @@ def test_strict_false_loads_the_rest_and_warns() -> None:
         UserWarning, match=r"(?s)skipped keys.*position_head\.2\.weight.*static_mask_head\.2\.bias"
     ):
         module = DecoupledDeformation.from_official_state_dict(state, strict=False)
-    loaded = official_tensors(module)
+    loaded = module.to_official_state_dict()
     for key, value in state.items():
         if key in loaded:
             assert torch.equal(loaded[key], value), key
@@ -529,8 +528,8 @@ def test_with_canonical_appends_the_official_current_frame() -> None:
     assert full.rigid_mask.shape == (2, 5, 9) and not full.rigid_mask[:, -1].any()
     assert full.rigid_offsets is full.nonrigid_offsets and not full.rigid_offsets[:, -1].any()
     # losses are those of the deformed steps (as the official module computes them)
-    for key, value in deformation_loss(out).items():
-        assert torch.equal(deformation_loss(full)[key], value), key
+    for key, value in deformation_loss(out).to_dict().items():
+        assert torch.equal(getattr(deformation_loss(full), key), value), key
     # the detector's 9 render frames: cat([deformed, canonical], time) in the module layout
     detector = run_reference(ref, canonical, make_inputs()[1], times_for(2))
     d = full.to_official_dict(losses=True)

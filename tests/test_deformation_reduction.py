@@ -64,7 +64,9 @@ def test_all_ones_weights_give_the_mean(case: tuple[str, int, int, int, int]) ->
     for weights in (torch.ones(n, dtype=torch.float64), torch.full((b, n), 3.5).double()):
         weighted = deformation_loss(out, reduction="weighted", gaussian_weights=weights)
         for key in ("reg", "mask", "total"):
-            torch.testing.assert_close(weighted[key], mean[key], rtol=1e-12, atol=1e-14)
+            torch.testing.assert_close(
+                getattr(weighted, key), getattr(mean, key), rtol=1e-12, atol=1e-14
+            )
 
 
 @settings(max_examples=25, deadline=None)
@@ -73,8 +75,8 @@ def test_sum_is_the_mean_times_the_count(case: tuple[str, int, int, int, int]) -
     preset, b, n, t, seed = case
     out = random_output(preset, b, n, t, seed)
     for name in PARAMETERS:
-        mean = deformation_loss(out, only(name))["reg"]
-        total = deformation_loss(out, only(name), reduction="sum")["reg"]
+        mean = deformation_loss(out, only(name)).reg
+        total = deformation_loss(out, only(name), reduction="sum").reg
         elements = getattr(out.deltas, name).numel()  # sum: every element
         per_gaussian = b * t * n
         expected = mean * (elements if preset == "official" else per_gaussian)
@@ -91,9 +93,7 @@ def test_weighted_is_the_weighted_mean_over_gaussians(
     raw = data.draw(st.lists(st.floats(0, 5), min_size=b * n, max_size=b * n))
     weights = torch.tensor(raw, dtype=torch.float64).reshape(b, n)
     for name in PARAMETERS:
-        got = deformation_loss(out, only(name), reduction="weighted", gaussian_weights=weights)[
-            "reg"
-        ]
+        got = deformation_loss(out, only(name), reduction="weighted", gaussian_weights=weights).reg
         values = per_gaussian_values(out, name)  # (B, T, N)
         # relative to the largest weight: subnormal weights would round the products
         unit = weights / weights.max() if float(weights.max()) > 0 else weights
@@ -103,7 +103,7 @@ def test_weighted_is_the_weighted_mean_over_gaussians(
         # scale-free in the weights
         rescaled = deformation_loss(
             out, only(name), reduction="weighted", gaussian_weights=7 * weights
-        )["reg"]
+        ).reg
         torch.testing.assert_close(rescaled, got, rtol=1e-10, atol=1e-14)
 
 
@@ -111,7 +111,7 @@ def test_weighted_is_the_weighted_mean_over_gaussians(
 def test_binary_weights_select_gaussians(preset: str) -> None:
     out = random_output(preset, 1, 5, 2, seed=3)
     keep = torch.tensor([True, False, True, False, False])
-    weighted = deformation_loss(out, reduction="weighted", gaussian_weights=keep)["reg"]
+    weighted = deformation_loss(out, reduction="weighted", gaussian_weights=keep).reg
     chosen = out.deltas.__class__(
         *(getattr(out.deltas, name)[:, :, keep] for name in PARAMETERS)  # type: ignore[arg-type]
     )
@@ -125,7 +125,7 @@ def test_binary_weights_select_gaussians(preset: str) -> None:
         rigid_offsets=out.rigid_offsets[:, :, keep],
         nonrigid_offsets=out.nonrigid_offsets[:, :, keep],
     )
-    torch.testing.assert_close(weighted, deformation_loss(subset)["reg"], rtol=1e-12, atol=0)
+    torch.testing.assert_close(weighted, deformation_loss(subset).reg, rtol=1e-12, atol=0)
 
 
 @pytest.mark.parametrize("preset", PRESETS)
@@ -135,12 +135,12 @@ def test_zero_weights_give_zero_and_no_gradient(preset: str) -> None:
     canonical, features = make_inputs(1, 4, seed=1)
     out = module(canonical, features, times_tensor([1.0]))
     weights = torch.tensor([0.0, 0.0, 2.0, 0.0], dtype=torch.float64)
-    loss = deformation_loss(out, reduction="weighted", gaussian_weights=weights)["reg"]
+    loss = deformation_loss(out, reduction="weighted", gaussian_weights=weights).reg
     loss.backward()
     grads = [p.grad for p in module.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)
     zero = deformation_loss(out, reduction="weighted", gaussian_weights=torch.zeros(4).double())
-    assert zero["reg"].item() == 0.0 and torch.isfinite(zero["total"])
+    assert zero.reg.item() == 0.0 and torch.isfinite(zero.total)
 
 
 def test_weighted_gradient_only_reaches_weighted_gaussians() -> None:
@@ -152,7 +152,7 @@ def test_weighted_gradient_only_reaches_weighted_gaussians() -> None:
     # one Gaussian only: weight 0 leaves it out entirely
     loss = deformation_loss(
         out, only("means"), reduction="weighted", gaussian_weights=torch.ones(1).double()
-    )["reg"]
+    ).reg
     (grad,) = torch.autograd.grad(loss, deltas)
     # mean over T = 2 steps of ||d||^2: gradient 2 d / 2
     torch.testing.assert_close(grad, deltas.detach())
@@ -164,18 +164,18 @@ def test_paper_preset_numbers_do_not_change() -> None:
     for preset, reg in (("paper", 7.5), ("official", 9 / 6 + 1 / 8 + 1 / 6 + 2.0)):
         default = deformation_loss(literal_output(preset))
         explicit = deformation_loss(literal_output(preset), reduction="mean")
-        assert default["reg"].item() == pytest.approx(reg, rel=1e-14)
-        assert torch.equal(default["total"], explicit["total"])
+        assert default.reg.item() == pytest.approx(reg, rel=1e-14)
+        assert torch.equal(default.total, explicit.total)
     assert DeformationLossWeights().reduction == "mean"
 
 
 def test_the_configured_reduction_is_the_default() -> None:
     out = literal_output("paper")
-    summed = deformation_loss(out, DeformationLossWeights(reduction="sum"))["reg"]
+    summed = deformation_loss(out, DeformationLossWeights(reduction="sum")).reg
     # (B, T, N) = (1, 2, 1): the sum is twice the mean
     assert summed.item() == pytest.approx(2 * 7.5, rel=1e-14)
     overridden = deformation_loss(out, DeformationLossWeights(reduction="sum"), reduction="mean")
-    assert overridden["reg"].item() == pytest.approx(7.5, rel=1e-14)
+    assert overridden.reg.item() == pytest.approx(7.5, rel=1e-14)
 
 
 def test_canonical_step_is_left_out_of_every_reduction() -> None:
@@ -186,7 +186,7 @@ def test_canonical_step_is_left_out_of_every_reduction() -> None:
     for reduction, kwargs in (("mean", {}), ("sum", {}), ("weighted", {"gaussian_weights": w})):
         a = deformation_loss(out, reduction=reduction, **kwargs)
         b = deformation_loss(extended, reduction=reduction, **kwargs)
-        torch.testing.assert_close(a["reg"], b["reg"], rtol=1e-12, atol=0)
+        torch.testing.assert_close(a.reg, b.reg, rtol=1e-12, atol=0)
 
 
 # -- bad input --------------------------------------------------------------------------
@@ -247,4 +247,6 @@ def test_weighted_mean_is_exact_for_tiny_and_huge_weights(scale: float) -> None:
     weights = torch.full((1,), scale, dtype=torch.float64)
     got = deformation_loss(out, reduction="weighted", gaussian_weights=weights)
     for key in ("reg", "mask", "total"):
-        torch.testing.assert_close(got[key], expected[key], rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(
+            getattr(got, key), getattr(expected, key), rtol=1e-12, atol=1e-14
+        )

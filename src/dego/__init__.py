@@ -4,7 +4,7 @@ Implements the building blocks of "Deformable Gaussian Occupancy" (DeGO, CVPR 20
 so that they run on CPU and GPU, in float32 and float64, with checked shapes.
 """
 
-from dego import _safe_globals
+from dego import _safe_globals, _typing
 from dego._policy import get_memory_limit, memory_limit, set_memory_limit
 from dego._version import __version__
 from dego.cameras import apply_image_aug, resize_crop_intrinsics, split_projection
@@ -36,6 +36,7 @@ from dego.data import (
 from dego.deformation import (
     DecoupledDeformation,
     DeformationDeltas,
+    DeformationLoss,
     DeformationLossWeights,
     DeformationOutput,
     deformation_loss,
@@ -75,6 +76,7 @@ from dego.voxelizer import GaussianVoxelizer, VoxelOutput, voxelize
 # GaussianSet and the result dataclasses load with torch.load(weights_only=True) once dego
 # is imported (torch >= 2.4); see docs/foundation.md, "Saving and loading".
 _safe_globals.register_safe_globals()
+_typing.resolve_pending()
 
 __all__ = [
     "CLASS_GROUPS",
@@ -88,6 +90,7 @@ __all__ = [
     "SCENE_CLASSES",
     "DecoupledDeformation",
     "DeformationDeltas",
+    "DeformationLoss",
     "DeformationLossWeights",
     "DeformationOutput",
     "DifferentiableSplatter",

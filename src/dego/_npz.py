@@ -9,7 +9,7 @@ import stat
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import IO, BinaryIO
+from typing import IO, Any, BinaryIO
 
 import numpy as np
 from numpy.lib import format as npy_format
@@ -72,7 +72,9 @@ def write_npz(path: Path, arrays: Mapping[str, np.ndarray], *, compressed: bool)
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, "wb") as file:
-            (np.savez_compressed if compressed else np.savez)(file, **arrays)
+            # the keys are array names: numpy's stubs would also match them to allow_pickle
+            named: dict[str, Any] = dict(arrays)
+            (np.savez_compressed if compressed else np.savez)(file, **named)
             file.flush()
             os.fsync(file.fileno())
         os.replace(tmp, path)

@@ -233,9 +233,9 @@ def gaussian_value_checks(
     ``prefix`` goes before each field name (``"gaussians."`` in ``splat``). Scales must be
     > 0 (``positive_scales=False``: only scales that are *all* negative are refused, as
     log-scales); quaternions (when given) of non-zero norm; opacities in [0, 1], checked in
-    this order. When every
-    scale is negative or every opacity outside [0, 1] the message adds the log-scales /
-    logits hint. ``scales_needed_for`` explains why positivity matters (``"; ..."``).
+    this order. When every scale is negative or every opacity outside [0, 1] the message
+    adds the log-scales / logits hint. ``scales_needed_for`` (``"; ..."``) says why
+    positivity matters.
     """
     outside = (opacities < 0) | (opacities > 1)
 

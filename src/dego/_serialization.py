@@ -134,13 +134,13 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
         if not isinstance(value, Mapping):
             raise TypeError(f"{where}: expected a dict, got {_describe_value(value)}")
         key_hint, value_hint = args or (Any, Any)
-        items = {
+        entries = {
             _check_leaf(k, key_hint, f"{where} key {k!r}"): _coerce(
                 v, value_hint, f"{where}[{k!r}]"
             )
             for k, v in value.items()
         }
-        return MappingProxyType(items) if origin is Mapping else items
+        return MappingProxyType(entries) if origin is Mapping else entries
     return _check_leaf(value, hint, where)
 
 
@@ -177,7 +177,7 @@ def _construct(cls: type[T], values: dict[str, Any], where: str, into: T | None 
     try:
         if into is None:
             return cls(**values)
-        cls.__init__(into, **values)  # type: ignore[misc]
+        cls.__init__(into, **values)
         return into
     except (TypeError, ValueError) as err:
         if not where:

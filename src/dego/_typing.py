@@ -18,12 +18,13 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import inspect
 import types
 import typing
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import torch
 from beartype import beartype
@@ -104,7 +105,7 @@ def _matches(value: torch.Tensor, array: _Array, sizes: dict[str, Any]) -> bool:
         name = dims[at][1]
         if name is not None and name in sizes and sizes[name] != middle:
             return False
-        bound = {name: middle} if name is not None else {}
+        bound: dict[str, Any] = {name: middle} if name is not None else {}
     else:
         if len(shape) != len(dims):
             return False
@@ -156,6 +157,10 @@ def _traced_check(qualname: str, specs: tuple[_Spec, ...], arguments: dict[str, 
 
 
 _RESULT = "_dego_result"
+TYPECHECKED = "__dego_typechecked__"
+"""The attribute :func:`typechecked` sets to ``True`` on its wrappers. ``functools.wraps``
+copies a function's ``__dict__``, so it also marks a decorator's wrapper around a checked
+function (tests/test_typechecked_exports.py reads it)."""
 
 
 def _stub(fn: Callable[..., Any], with_return: bool) -> Callable[..., Any]:
@@ -196,6 +201,16 @@ def _has_array_return(fn: Callable[..., Any]) -> bool:
     return annotation is not None and "Tensor" in str(annotation)
 
 
+_PENDING: list[Callable[[], None]] = []
+
+
+def resolve_pending() -> None:
+    """Resolve the annotations that named something not yet defined at decoration time."""
+    while _PENDING:
+        with contextlib.suppress(NameError):  # then on first use, as before
+            _PENDING.pop()()
+
+
 def typechecked(fn: F) -> F:
     """Check ``fn``'s jaxtyping annotations on every call, eager or compiled."""
     check_arguments = torch._dynamo.disable(
@@ -215,9 +230,13 @@ def typechecked(fn: F) -> F:
     def prepare() -> None:
         prepared.append(_specs(fn))
 
-    # An annotation naming something defined later in its module resolves on first use.
-    with contextlib.suppress(NameError):
+    # An annotation naming something defined later in its module (a method returning its
+    # own class) resolves once the package is imported (resolve_pending, from dego/__init__),
+    # so that a first call under torch.compile need not run the disabled prepare.
+    try:
         prepare()
+    except NameError:
+        _PENDING.append(prepare)
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -233,7 +252,39 @@ def typechecked(fn: F) -> F:
             check_result(*args, **kwargs, **{_RESULT: result})
         return result
 
-    return wrapper  # type: ignore[return-value]
+    wrapper.__dict__[TYPECHECKED] = True
+    return cast(F, wrapper)
 
 
-__all__ = ["typechecked"]
+_FIELD_CHECKS: dict[type, tuple[tuple[str, ...], Callable[..., Any]]] = {}
+
+
+def check_tensor_fields(record: Any) -> None:
+    """Check the fields of dataclass instance ``record`` whose annotations name a tensor
+    (jaxtyping + beartype, axis sizes shared across the fields), for ``__post_init__``.
+
+    Raises :class:`jaxtyping.TypeCheckError` naming the field. Skipped while
+    ``torch.compile`` traces (beartype cannot be traced).
+    """
+    if _is_compiling():
+        return
+    cls = type(record)
+    if cls not in _FIELD_CHECKS:
+        hints = typing.get_type_hints(cls, include_extras=True)
+        names = tuple(
+            f.name for f in dataclasses.fields(cls) if "Tensor" in str(hints.get(f.name, ""))
+        )
+        namespace: dict[str, Any] = {}
+        exec(f"def fields(*, {', '.join(names)}):\n    return None", namespace)
+        check = namespace["fields"]
+        check.__annotations__ = {name: hints[name] for name in names}
+        check.__qualname__ = f"{cls.__qualname__}.__init__"
+        check.__module__ = cls.__module__
+        checker = torch._dynamo.disable(jaxtyped(typechecker=beartype)(check), recursive=True)
+        _FIELD_CHECKS[cls] = (names, checker)
+    names, checker = _FIELD_CHECKS[cls]
+    if names:
+        checker(**{name: getattr(record, name) for name in names})
+
+
+__all__ = ["check_tensor_fields", "typechecked"]

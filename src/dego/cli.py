@@ -520,12 +520,12 @@ def run_demo(
     gains = paired_gains(scores)
     for line in gains:
         print(line)
-    masks = {
+    masks: dict[str, dict[str, float]] = {
         r.variant: mask_by_group(rigidity_mask(r), r.model) for r in results if _learns_mask(r)
     }
-    for variant, summary in masks.items():
+    for learned, summary in masks.items():
         print(
-            f"{variant}: mean rigidity mask m (1 = nonrigid) "
+            f"{learned}: mean rigidity mask m (1 = nonrigid) "
             + ", ".join(f"{group} {value:.3f}" for group, value in summary.items())
         )
 

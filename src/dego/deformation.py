@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+import warnings
+from collections.abc import Iterator, Mapping
 from typing import Any, Literal
 
 import torch
@@ -19,35 +20,28 @@ from torch import Tensor, nn
 
 from dego import _serialization
 from dego._checks import check_int, check_positive
-from dego._geometry import quaternion_product, unit_quaternions
 from dego._policy import finite_check, float32_under_autocast, run_checks
-from dego._typing import typechecked
+from dego._typing import check_tensor_fields, typechecked
 from dego.deformation_checkpoint import (
     OFFICIAL_CHECKPOINT_PREFIX,
     StateDictMismatchError,
-    export_official_state_dict,
-    load_official_state_dict,
+    from_official_tensors,
+    official_state_dict,
+    read_official_state_dict,
+)
+from dego.deformation_presets import (
+    MAX_LOG_SCALE_CHANGE,
+    PARAMETERS,
+    PRESETS,
+    Preset,
+    PresetSpec,
+    shift_opacity_logit,
 )
 from dego.encoding import positional_encoding
 from dego.gaussians import GaussianSet, quaternion_multiply
 from dego.grid import VoxelGrid
 
-Preset = Literal["paper", "official"]
-
-PARAMETERS = ("means", "quats", "scales", "opacities")
-"""The deformed Gaussian parameters, in the order of the paper's ``{mu, r, s, alpha}``."""
-
-MAX_LOG_SCALE_CHANGE = 5.0
-"""``paper`` preset: log-scale deltas are soft-bounded to +-5 (a factor e^5 ~ 148) by
-``5 tanh(d / 5)``, so deformed scales stay positive and finite whatever the network says."""
-
 _CPU_CHUNK_ROWS = 4096  # (Gaussian, time) rows per feature-net chunk on CPU: cache-sized
-_MAX_LOGIT_SHIFT = 50.0  # beyond this the shifted opacity equals 0 or 1 in float32 anyway
-
-# The official code's constants (vggt-and-deformation-facts.md section 4).
-_OFFICIAL_OFFSET_CLAMP = 10.0  # metres
-_OFFICIAL_SCALE_CLAMP = 1.0  # metres, added to a linear scale
-_OFFICIAL_QUAT_EPS = 1e-8
 
 
 Reduction = Literal["mean", "sum", "weighted"]
@@ -99,6 +93,89 @@ class DeformationLossWeights:
             raise ValueError(f"reduction: expected one of {REDUCTIONS}, got {self.reduction!r}")
 
 
+_LOSS_TERMS = ("reg", "mask", "total")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DeformationLoss:
+    """Result of :func:`deformation_loss`: DeGO's deformation losses, scalars.
+
+    Attributes:
+        reg: ``L_reg = sum_p lambda_p R(||d_p||^2)`` (unweighted by ``weights.reg``).
+        mask: ``L_mask = mean(m (1 - m))``.
+        total: ``L_def = weights.reg * reg + weights.mask * mask``.
+
+    Deprecated: the dict-style access of the dict that :func:`deformation_loss` returned
+    before (``loss["total"]``, ``"total" in loss``, ``keys()``, ``values()``, ``items()``,
+    ``get()``, iteration, ``len()``, ``dict(loss)``) still works for one release and warns
+    (``DeprecationWarning``); use the attributes (``loss.total``) or :meth:`to_dict`.
+    """
+
+    reg: Float[Tensor, ""]
+    mask: Float[Tensor, ""]
+    total: Float[Tensor, ""]
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
+
+    @typechecked
+    def to_dict(self) -> dict[str, Tensor]:
+        """``{"reg", "mask", "total"}`` -> the tensors (not copied, not detached)."""
+        return {name: getattr(self, name) for name in _LOSS_TERMS}
+
+    # -- deprecated dict-style access (one release) -------------------------------------
+    def _deprecated(self, used: str, instead: str) -> None:
+        warnings.warn(
+            f"DeformationLoss: {used} is deprecated (deformation_loss returned a dict before) "
+            f"and will be removed in the next release; use {instead}",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+
+    def __getitem__(self, key: str) -> Tensor:
+        if key not in _LOSS_TERMS:
+            raise KeyError(key)
+        self._deprecated(f"loss[{key!r}]", f"loss.{key}")
+        return getattr(self, key)
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """Deprecated: ``loss.get(key)``; use the attribute."""
+        self._deprecated(
+            f"loss.get({key!r})", f"loss.{key}" if key in _LOSS_TERMS else "the attributes"
+        )
+        return getattr(self, key) if key in _LOSS_TERMS else default
+
+    def __contains__(self, key: object) -> bool:
+        self._deprecated(f"{key!r} in loss", "the attributes loss.reg, loss.mask, loss.total")
+        return key in _LOSS_TERMS
+
+    def __iter__(self) -> Iterator[str]:
+        self._deprecated("iterating over loss", "loss.to_dict()")
+        return iter(_LOSS_TERMS)
+
+    def __len__(self) -> int:
+        self._deprecated("len(loss)", "loss.to_dict()")
+        return len(_LOSS_TERMS)
+
+    def __bool__(self) -> bool:  # not through the deprecated __len__
+        return True
+
+    def keys(self) -> tuple[str, ...]:
+        """Deprecated: the term names; use :meth:`to_dict`."""
+        self._deprecated("loss.keys()", "loss.to_dict().keys()")
+        return _LOSS_TERMS
+
+    def values(self) -> list[Tensor]:
+        """Deprecated: the terms; use the attributes or :meth:`to_dict`."""
+        self._deprecated("loss.values()", "loss.to_dict().values()")
+        return [getattr(self, name) for name in _LOSS_TERMS]
+
+    def items(self) -> list[tuple[str, Tensor]]:
+        """Deprecated: ``(name, term)`` pairs; use :meth:`to_dict`."""
+        self._deprecated("loss.items()", "loss.to_dict().items()")
+        return [(name, getattr(self, name)) for name in _LOSS_TERMS]
+
+
 @dataclasses.dataclass(frozen=True)
 class DeformationDeltas(_serialization.DictForm):
     """Applied deltas per parameter, each ``(B, T, N, k)`` (opacities ``(B, T, N)``).
@@ -113,6 +190,9 @@ class DeformationDeltas(_serialization.DictForm):
     quats: Float[Tensor, "B T N 4"]
     scales: Float[Tensor, "B T N 3"]
     opacities: Float[Tensor, "B T N"]
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,6 +221,9 @@ class DeformationOutput(_serialization.DictForm):
     preset: Preset
     loss_weights: DeformationLossWeights
     canonical_last: bool = False
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
 
     @property
     def num_times(self) -> int:
@@ -207,8 +290,8 @@ class DeformationOutput(_serialization.DictForm):
                     f"{self.preset!r} (use deformation_loss for its own losses)"
                 )
             terms = deformation_loss(self, DeformationLossWeights())
-            result["deformation_reg_loss"] = terms["reg"]
-            result["rigid_non_rigid_loss"] = terms["mask"]
+            result["deformation_reg_loss"] = terms.reg
+            result["rigid_non_rigid_loss"] = terms.mask
         return result
 
     @typechecked
@@ -249,7 +332,7 @@ class DeformationOutput(_serialization.DictForm):
             if self.rigid_mask.ndim == 2
             else append_zeros(self.rigid_mask),
             deltas=DeformationDeltas(
-                *(append_zeros(getattr(self.deltas, name)) for name in PARAMETERS)  # type: ignore[arg-type]
+                *(append_zeros(getattr(self.deltas, name)) for name in PARAMETERS)
             ),
             rigid_offsets=rigid,
             nonrigid_offsets=rigid if shared else append_zeros(self.nonrigid_offsets),
@@ -299,7 +382,7 @@ class DeformationOutput(_serialization.DictForm):
             gaussians=gaussians,
             rigid_mask=mask,
             deltas=DeformationDeltas(
-                *(gate(getattr(self.deltas, name), 0.0) for name in PARAMETERS)  # type: ignore[arg-type]
+                *(gate(getattr(self.deltas, name), 0.0) for name in PARAMETERS)
             ),
             rigid_offsets=rigid,
             nonrigid_offsets=rigid if shared else gate(self.nonrigid_offsets, 0.0),
@@ -336,6 +419,14 @@ def _check_like_gaussians(
     run_checks([finite_check(name, t) for name, t in named])
 
 
+def _last_linear(mlp: nn.Module) -> nn.Linear:
+    """The output layer of an :func:`_mlp`."""
+    assert isinstance(mlp, nn.Sequential)
+    last = mlp[-1]
+    assert isinstance(last, nn.Linear)
+    return last
+
+
 def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
     """``layers`` Linear layers with ReLU between them (none after the last)."""
     dims = [in_dim] + [hidden] * (layers - 1) + [out_dim]
@@ -345,23 +436,6 @@ def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
         if i < layers - 1:
             modules.append(nn.ReLU())
     return nn.Sequential(*modules)
-
-
-def shift_opacity_logit(opacity: Tensor, shift: Tensor) -> Tensor:
-    """``sigmoid(logit(o) + d)`` for o in [0, 1], exact where ``d`` is 0, always in [0, 1].
-
-    Raising (d >= 0): ``o + (1 - o) o u / (1 + o u)`` with ``u = expm1(d)``, which is o
-    itself at d = 0. Lowering (d < 0): ``o e^d / ((1 - o) + o e^d)``, a ratio of positive
-    terms. No logit of 0 or 1 is taken and nothing cancels, so o = 0 (padding) and o = 1
-    stay fixed with finite gradients; |d| is clamped to 50, where the result is 0 or 1.
-    """
-    d = shift.clamp(-_MAX_LOGIT_SHIFT, _MAX_LOGIT_SHIFT)
-    # each branch sees only its own half of d, so neither can produce NaN gradients
-    u = torch.expm1(d.clamp_min(0))
-    raised = opacity + (1 - opacity) * (opacity * u / (1 + opacity * u))
-    scaled = opacity * torch.exp(d.clamp_max(0))
-    lowered = scaled / ((1 - opacity) + scaled)
-    return torch.where(d >= 0, raised.clamp_max(1), lowered)
 
 
 class DecoupledDeformation(nn.Module):
@@ -378,7 +452,10 @@ class DecoupledDeformation(nn.Module):
       ``rigid_offset`` (3), ``nonrigid_offset`` (3), ``rotation`` (4), ``scale`` (3),
       ``opacity`` (1) and the mask logit (1).
 
-    Presets:
+    Presets (one :class:`~dego.deformation_presets.PresetSpec` each, in
+    :data:`dego.deformation_presets.PRESETS`; the update rules are
+    :func:`~dego.deformation_presets.paper_update` and
+    :func:`~dego.deformation_presets.official_update`):
 
     ``"paper"`` (default), the method as written, with positivity-preserving updates:
         - m is per Gaussian and time-independent: ``sigmoid(mask_net([f, PE_p(mu)]))``;
@@ -463,11 +540,12 @@ class DecoupledDeformation(nn.Module):
             ("chunk_rows", 1 if chunk_rows is None else chunk_rows, 1),
         ]:
             check_int(name, value, low)
-        if preset not in ("paper", "official"):
+        if preset not in PRESETS:
             raise ValueError(f"preset: expected 'paper' or 'official', got {preset!r}")
+        spec = PRESETS[preset]
         if pos_scale is None:
             grid = VoxelGrid.occ3d()
-            pos_scale = max(map(abs, (*grid.lower, *grid.upper))) if preset == "paper" else 1.0
+            pos_scale = max(map(abs, (*grid.lower, *grid.upper))) if spec.scaled_positions else 1.0
         check_positive("time_scale", time_scale)
         check_positive("pos_scale", pos_scale)
         if fixed_mask is not None and (
@@ -494,22 +572,26 @@ class DecoupledDeformation(nn.Module):
         self.input_static = nn.Linear(static_dim, hidden_dim)
         self.input_time = nn.Linear(time_dim, hidden_dim, bias=False)
         self.trunk = _mlp(hidden_dim, hidden_dim, hidden_dim, depth - 1) if depth > 1 else None
-        heads = {"rigid_offset": 3, "nonrigid_offset": 3, "rotation": 4, "scale": 3, "opacity": 1}
-        if preset == "official":
-            del heads["nonrigid_offset"]  # one shared position head
         self.heads = nn.ModuleDict(
-            {name: _mlp(hidden_dim, head_hidden, k, 2) for name, k in heads.items()}
+            {name: _mlp(hidden_dim, head_hidden, k, 2) for name, k in spec.heads}
         )
-        mask_in = static_dim if preset == "paper" else hidden_dim
+        # per time step: on the feature net's h(t); per Gaussian: on [f, PE(mu)]
+        mask_in = hidden_dim if spec.mask_per_time else static_dim
         self.mask_head = _mlp(mask_in, head_hidden, 1, 2)
         self.reset_parameters()
 
+    @property
+    def spec(self) -> PresetSpec:
+        """The preset's :class:`~dego.deformation_presets.PresetSpec`."""
+        return PRESETS[self.preset]
+
+    @typechecked
     def reset_parameters(self) -> None:
         """Re-initialise per the preset (see the class docstring)."""
         for module in self.modules():
             if isinstance(module, nn.Linear):
                 module.reset_parameters()
-        if self.preset == "official":
+        if self.spec.xavier_init:
             for module in self.modules():
                 if isinstance(module, nn.Linear):
                     nn.init.xavier_uniform_(module.weight)
@@ -523,8 +605,9 @@ class DecoupledDeformation(nn.Module):
                 nn.init.uniform_(part, -bound, bound)
         else:
             for head in [*self.heads.values(), self.mask_head]:
-                nn.init.zeros_(head[-1].weight)
-                nn.init.zeros_(head[-1].bias)
+                last = _last_linear(head)
+                nn.init.zeros_(last.weight)
+                nn.init.zeros_(last.bias)
 
     def _normalized_times(self, times: Tensor, batch: int) -> Tensor:
         message = "times: expected finite values, got NaN or inf"
@@ -578,8 +661,9 @@ class DecoupledDeformation(nn.Module):
         static_part = self.input_static(static)[:, None]  # (B, 1, N, D_h)
         time_part = self.input_time(embedding)[:, :, None]  # (B, T, 1, D_h)
         t = times.shape[1]
+        spec = self.spec
         heads = {name: head for name, head in self.heads.items()}
-        if self.preset == "official" and self.fixed_mask is None:
+        if spec.mask_per_time and self.fixed_mask is None:
             heads["mask"] = self.mask_head
         # All T at once, over bounded chunks of Gaussians: the arithmetic of one pass,
         # but on a CPU each chunk's activations stay in cache (1.5-2x faster fwd + bwd).
@@ -596,85 +680,29 @@ class DecoupledDeformation(nn.Module):
         raw = {
             name: torch.cat(parts, 2).to(static.dtype)
             if parts
-            else static.new_zeros(b, t, n, heads[name][-1].out_features)
+            else static.new_zeros(b, t, n, _last_linear(heads[name]).out_features)
             for name, parts in outputs.items()
         }
-        if self.preset == "paper":
-            if self.fixed_mask is None:
-                mask = torch.sigmoid(self.mask_head(static).to(static.dtype)).squeeze(-1)  # (B, N)
-            else:
-                mask = static.new_full((b, n), self.fixed_mask)
-            return self._apply_paper(gaussians, raw, mask)
-        if self.fixed_mask is None:
+        mask_shape = (b, t, n) if spec.mask_per_time else (b, n)
+        if self.fixed_mask is not None:
+            mask = static.new_full(mask_shape, self.fixed_mask)
+        elif spec.mask_per_time:
             mask = torch.sigmoid(raw.pop("mask")).squeeze(-1)  # (B, T, N)
         else:
-            mask = static.new_full((b, t, n), self.fixed_mask)
-        return self._apply_official(gaussians, raw, mask)
-
-    def _output(
-        self,
-        gaussians: GaussianSet,
-        deformed: dict[str, Tensor],
-        mask: Tensor,
-        deltas: DeformationDeltas,
-        raw: dict[str, Tensor],
-    ) -> DeformationOutput:
-        t = deltas.means.shape[1]
+            mask = torch.sigmoid(self.mask_head(static).to(static.dtype)).squeeze(-1)  # (B, N)
+        canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
+        deformed, deltas = spec.update(canonical, raw, mask)
         if gaussians.features is not None:
             deformed["features"] = gaussians.features[:, None].expand(-1, t, -1, -1)
         return DeformationOutput(
             gaussians=GaussianSet(**deformed),
             rigid_mask=mask,
-            deltas=deltas,
+            deltas=DeformationDeltas(**deltas),
             rigid_offsets=raw["rigid_offset"],
-            nonrigid_offsets=raw[
-                "rigid_offset" if self.preset == "official" else "nonrigid_offset"
-            ],
+            nonrigid_offsets=raw[spec.nonrigid_head],
             preset=self.preset,
             loss_weights=self.loss_weights,
         )
-
-    def _apply_paper(
-        self, gaussians: GaussianSet, raw: dict[str, Tensor], mask: Tensor
-    ) -> DeformationOutput:
-        m = mask[:, None, :, None]  # (B, 1, N, 1)
-        d_means = (1 - m) * raw["rigid_offset"] + m * raw["nonrigid_offset"]
-        d_quats = m * raw["rotation"]
-        d_scales = m * (MAX_LOG_SCALE_CHANGE * torch.tanh(raw["scale"] / MAX_LOG_SCALE_CHANGE))
-        d_opacities = (m * raw["opacity"]).squeeze(-1)
-        identity = torch.zeros_like(d_quats)
-        identity[..., 0] = 1
-        increment = unit_quaternions(identity + d_quats)
-        canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
-        deformed = {
-            "means": canonical["means"] + d_means,
-            "quats": quaternion_product(canonical["quats"], increment),
-            "scales": canonical["scales"] * torch.exp(d_scales),
-            "opacities": shift_opacity_logit(canonical["opacities"], d_opacities),
-        }
-        deltas = DeformationDeltas(d_means, increment - identity, d_scales, d_opacities)
-        return self._output(gaussians, deformed, mask, deltas, raw)
-
-    def _apply_official(
-        self, gaussians: GaussianSet, raw: dict[str, Tensor], mask: Tensor
-    ) -> DeformationOutput:
-        m = mask[..., None]  # (B, T, N, 1)
-        canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
-        identity = torch.zeros_like(raw["rotation"])
-        identity[..., 0] = 1
-        blended = m * unit_quaternions(raw["rotation"] + _OFFICIAL_QUAT_EPS) + (1 - m) * identity
-        deformed = {
-            "means": canonical["means"]
-            + raw["rigid_offset"].clamp(-_OFFICIAL_OFFSET_CLAMP, _OFFICIAL_OFFSET_CLAMP),
-            "quats": quaternion_product(canonical["quats"], blended),
-            "scales": canonical["scales"]
-            + m * raw["scale"].clamp(-_OFFICIAL_SCALE_CLAMP, _OFFICIAL_SCALE_CLAMP),
-            "opacities": (canonical["opacities"] + mask * raw["opacity"].squeeze(-1)).clamp(0, 1),
-        }
-        deltas = DeformationDeltas(
-            *(deformed[name] - canonical[name] for name in PARAMETERS)  # type: ignore[arg-type]
-        )
-        return self._output(gaussians, deformed, mask, deltas, raw)
 
     @typechecked
     def to_official_state_dict(self, prefix: str = "") -> dict[str, Tensor]:
@@ -700,7 +728,37 @@ class DecoupledDeformation(nn.Module):
             UserWarning: ``time_scale``, ``pos_scale`` other than 1 or a ``fixed_mask``: the
                 official module has no such setting and will compute something else.
         """
-        return export_official_state_dict(self, prefix)
+        if self.preset != "official":
+            raise ValueError(
+                f"preset: only an 'official' preset module has an official state dict, this one "
+                f"is {self.preset!r} (a different network: separate nonrigid head, "
+                "per-Gaussian mask)"
+            )
+        params = dict(self.named_parameters())
+        state = official_state_dict(params, self.pos_levels, self.time_levels, prefix)
+        head_hidden = self.mask_head[0].out_features
+        hidden = self.input_static.out_features
+        if head_hidden != hidden:
+            raise ValueError(
+                f"head_hidden: the official heads are hidden_dim = {hidden} wide, this module's "
+                f"are {head_hidden}"
+            )
+        differences = [
+            f"{name}={value}"
+            for name, value, default in [
+                ("time_scale", self.time_scale, 1.0),
+                ("pos_scale", self.pos_scale, 1.0),
+                ("fixed_mask", self.fixed_mask, None),
+            ]
+            if value != default
+        ]
+        if differences:
+            warnings.warn(
+                f"to_official_state_dict: the official module has no {', '.join(differences)}; "
+                "it will load these weights but compute something else",
+                stacklevel=3,  # past the run-time type check, at the caller
+            )
+        return state
 
     @classmethod
     @typechecked
@@ -761,7 +819,25 @@ class DecoupledDeformation(nn.Module):
                 strict mode, or the sizes cannot be inferred.
             TypeError: ``state_dict`` is not a mapping, ``prefix`` not a str.
         """
-        return load_official_state_dict(cls, state_dict, prefix, strict, kwargs)
+        found = read_official_state_dict(state_dict, prefix, strict, kwargs)
+        if found.skipped is not None:
+            warnings.warn(
+                f"from_official_state_dict(strict=False) skipped keys; the parameters they "
+                f"would fill keep their initialisation. {found.skipped}",
+                stacklevel=3,  # past the run-time type check, at the caller
+            )
+        module = cls(**found.sizes, preset="official", **kwargs)  # type: ignore[arg-type]
+        # dtype and device from the first layer (else any floating tensor that fits)
+        tensors = found.tensors
+        reference = tensors.get("feature_net.0.weight", next(iter(tensors.values()), None))
+        if reference is not None:
+            module = module.to(dtype=reference.dtype, device=reference.device)
+        params = dict(module.named_parameters())
+        ours = from_official_tensors(tensors, module.input_static.in_features, found.sizes["depth"])
+        with torch.no_grad():
+            for name, value in ours.items():
+                params[name].copy_(value)
+        return module
 
     def extra_repr(self) -> str:
         return (
@@ -783,8 +859,9 @@ def deformation_loss(
     *,
     reduction: str | None = None,
     gaussian_weights: Tensor | None = None,
-) -> dict[str, Tensor]:
-    """DeGO's deformation losses: ``{"reg", "mask", "total"}`` (scalars).
+) -> DeformationLoss:
+    """DeGO's deformation losses: a :class:`DeformationLoss` with ``reg``, ``mask`` and
+    ``total`` (scalars).
 
     ``reg = sum_p lambda_p R(||d_p||^2)`` over the applied deltas, reduced by R (see
     :class:`DeformationLossWeights`; ``"mean"``, the default: ``paper``, the mean over
@@ -811,7 +888,7 @@ def deformation_loss(
     reduction = weights.reduction if reduction is None else reduction
     if reduction not in REDUCTIONS:
         raise ValueError(f"reduction: expected one of {REDUCTIONS}, got {reduction!r}")
-    official = output.preset == "official"
+    spec = PRESETS[output.preset]
     steps = slice(None, -1) if output.canonical_last else slice(None)
     per_gaussian = _reduction_weights(output, reduction, gaussian_weights)
     reg = output.deltas.means.new_zeros(())
@@ -819,7 +896,7 @@ def deformation_loss(
         squared = getattr(output.deltas, name)[:, steps].square()
         if name == "opacities":
             value = squared  # (B, T, N): one element per Gaussian
-        elif official and reduction != "sum":
+        elif spec.reg_element_mean and reduction != "sum":
             value = squared.mean(-1)
         else:
             value = squared.sum(-1)
@@ -835,9 +912,9 @@ def deformation_loss(
             term = (w * value).sum() / torch.where(total_weight > 0, total_weight, 1.0)
         reg = reg + getattr(weights, name) * term
     m = output.rigid_mask if output.rigid_mask.ndim == 2 else output.rigid_mask[:, steps]
-    m = m[:, -1] if official else m
+    m = m[:, -1] if spec.mask_loss_last_step else m
     mask = _mean(m * (1 - m))
-    return {"reg": reg, "mask": mask, "total": weights.reg * reg + weights.mask * mask}
+    return DeformationLoss(reg=reg, mask=mask, total=weights.reg * reg + weights.mask * mask)
 
 
 def _reduction_weights(
@@ -886,6 +963,7 @@ __all__ = [
     "REDUCTIONS",
     "DecoupledDeformation",
     "DeformationDeltas",
+    "DeformationLoss",
     "DeformationLossWeights",
     "DeformationOutput",
     "StateDictMismatchError",

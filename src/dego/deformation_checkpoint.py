@@ -1,26 +1,27 @@
-"""Official DeGO deformation checkpoints <-> :class:`dego.DecoupledDeformation`.
+"""Official DeGO deformation checkpoints <-> :class:`dego.DecoupledDeformation` weights.
 
-The key mapping, size inference and mismatch reporting behind
-:meth:`DecoupledDeformation.from_official_state_dict` and
-:meth:`DecoupledDeformation.to_official_state_dict` (official preset).
+A pure key mapping: the official module's state-dict keys and shapes, size inference from
+them, the translation to and from this port's parameter names, and mismatch reporting.
+Nothing here builds or imports a module; :meth:`DecoupledDeformation.from_official_state_dict`
+and :meth:`DecoupledDeformation.to_official_state_dict` (``official`` preset) do, with
+:func:`read_official_state_dict`, :func:`from_official_tensors` and
+:func:`official_state_dict`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
-import warnings
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from dego._checks import check_int
 from dego._policy import check_memory
-
-if TYPE_CHECKING:
-    from dego.deformation import DecoupledDeformation
+from dego._typing import typechecked
 
 OFFICIAL_CHECKPOINT_PREFIX = "gaussian_decoder.deformation_module."
 """Where the official DeGO detector keeps its deformation network: the keys of
@@ -98,6 +99,9 @@ def _infer_official_sizes(
     def first(*candidates: int | None) -> int | None:
         return next((c for c in candidates if c is not None), None)
 
+    def dim(shape: tuple[int, ...] | None, axis: int) -> int | None:
+        return None if shape is None else shape[axis]
+
     freqs = {name: _shape(given, name, 1) for name in _OFFICIAL_BUFFERS}
     time_in = _shape(given, "time_embed.0.weight", 2)
     time_out = _shape(given, "time_embed.2.weight", 2)
@@ -107,13 +111,13 @@ def _infer_official_sizes(
         int(m.group(1)) for key in given if (m := re.fullmatch(r"feature_net\.(\d+)\.\w+", key))
     ]
     inferred = {
-        "pos_levels": first(freqs["pos_enc_freqs"] and freqs["pos_enc_freqs"][0]),
+        "pos_levels": dim(freqs["pos_enc_freqs"], 0),
         "time_levels": first(
-            freqs["time_enc_freqs"] and freqs["time_enc_freqs"][0],
+            dim(freqs["time_enc_freqs"], 0),
             (time_in[1] - 1) // 2 if time_in and time_in[1] % 2 else None,
         ),
-        "time_dim": first(time_in and time_in[0], time_out and time_out[0]),
-        "hidden_dim": first(first_layer and first_layer[0], first_bias and first_bias[0]),
+        "time_dim": first(dim(time_in, 0), dim(time_out, 0)),
+        "hidden_dim": first(dim(first_layer, 0), dim(first_bias, 0)),
         "depth": max(indices) // 2 + 1 if indices else None,
     }
     defaults = {"pos_levels": 6, "time_levels": 4, "time_dim": 32, "hidden_dim": 256, "depth": 6}
@@ -222,11 +226,13 @@ def _mismatch_message(sizes: dict[str, int], prefix: str, lines: list[str]) -> s
     )
 
 
-def official_names(module: DecoupledDeformation) -> dict[str, str]:
-    """Official parameter name -> ours (except the split first layer's weight)."""
+@typechecked
+def official_names(depth: int) -> dict[str, str]:
+    """Official parameter name -> ours for a feature net of ``depth`` layers (all but the
+    first layer's weight, ``feature_net.0.weight``, split column-wise into
+    ``input_static.weight`` and ``input_time.weight``; the frequency buffers have none)."""
     names = {f"time_embed.{i}.{p}": f"time_embedding.{i}.{p}" for i in (0, 2) for p in _WB}
     names["feature_net.0.bias"] = "input_static.bias"
-    depth = 1 + (0 if module.trunk is None else (len(module.trunk) + 1) // 2)
     for j in range(1, depth):
         for p in _WB:
             names[f"feature_net.{2 * j}.{p}"] = f"trunk.{2 * (j - 1)}.{p}"
@@ -237,67 +243,96 @@ def official_names(module: DecoupledDeformation) -> dict[str, str]:
     return names
 
 
-def official_tensors(module: DecoupledDeformation) -> dict[str, Tensor]:
-    """The official module's state dict, in its order, from this module's parameters."""
-    ours = dict(module.named_parameters())
-    weight = module.input_static.weight
+def _our_depth(ours: Mapping[str, Any]) -> int:
+    """The feature-net depth of our parameters: the first layer plus the trunk's Linears."""
+    return 1 + sum(1 for key in ours if re.fullmatch(r"trunk\.\d+\.weight", key))
+
+
+@typechecked
+def official_tensors(
+    ours: Mapping[str, Tensor], pos_levels: int, time_levels: int
+) -> dict[str, Tensor]:
+    """The official module's state dict, in its order, from our parameters ``ours`` (an
+    ``official`` preset :class:`~dego.DecoupledDeformation`'s ``named_parameters()``);
+    detached, the first layer's weight a new concatenation."""
+    weight = ours["input_static.weight"]
     result = {
         name: 2.0 ** torch.arange(levels, dtype=weight.dtype, device=weight.device)
-        for name, levels in zip(
-            _OFFICIAL_BUFFERS, (module.pos_levels, module.time_levels), strict=True
-        )
+        for name, levels in zip(_OFFICIAL_BUFFERS, (pos_levels, time_levels), strict=True)
     }
-    for official, name in official_names(module).items():
+    for official, name in official_names(_our_depth(ours)).items():
         if official == "feature_net.0.bias":  # the whole first layer goes in order
             result["feature_net.0.weight"] = torch.cat(
-                [module.input_static.weight, module.input_time.weight], 1
+                [ours["input_static.weight"], ours["input_time.weight"]], 1
             ).detach()
         result[official] = ours[name].detach()
     return result
 
 
-def export_official_state_dict(module: DecoupledDeformation, prefix: str) -> dict[str, Tensor]:
-    """The body of :meth:`DecoupledDeformation.to_official_state_dict`."""
-    if module.preset != "official":
-        raise ValueError(
-            f"preset: only an 'official' preset module has an official state dict, this one "
-            f"is {module.preset!r} (a different network: separate nonrigid head, "
-            "per-Gaussian mask)"
-        )
+@typechecked
+def official_state_dict(
+    ours: Mapping[str, Tensor], pos_levels: int, time_levels: int, prefix: str
+) -> dict[str, Tensor]:
+    """:func:`official_tensors` with ``prefix`` (a missing trailing ``"."`` added) on every key."""
     prefix = _normalized_prefix(prefix)
-    head_hidden = module.mask_head[0].out_features
-    hidden = module.input_static.out_features
-    if head_hidden != hidden:
-        raise ValueError(
-            f"head_hidden: the official heads are hidden_dim = {hidden} wide, this module's "
-            f"are {head_hidden}"
-        )
-    differences = [
-        f"{name}={value}"
-        for name, value, default in [
-            ("time_scale", module.time_scale, 1.0),
-            ("pos_scale", module.pos_scale, 1.0),
-            ("fixed_mask", module.fixed_mask, None),
-        ]
-        if value != default
-    ]
-    if differences:
-        warnings.warn(
-            f"to_official_state_dict: the official module has no {', '.join(differences)}; "
-            "it will load these weights but compute something else",
-            stacklevel=3,
-        )
-    return {prefix + key: value for key, value in official_tensors(module).items()}
+    tensors = official_tensors(ours, pos_levels, time_levels)
+    return {prefix + key: value for key, value in tensors.items()}
 
 
-def load_official_state_dict(
-    cls: type[DecoupledDeformation],
-    state_dict: Mapping[str, Any],
-    prefix: str,
-    strict: bool,
-    kwargs: dict[str, Any],
-) -> DecoupledDeformation:
-    """The body of :meth:`DecoupledDeformation.from_official_state_dict`."""
+@typechecked
+def from_official_tensors(
+    official: Mapping[str, Tensor], static_dim: int, depth: int
+) -> dict[str, Tensor]:
+    """Our parameter name -> tensor for each official key in ``official`` (prefix removed),
+    for a feature net of ``depth`` layers whose first layer takes ``static_dim`` per-Gaussian
+    input columns; keys without a parameter (the frequency buffers) are left out. Detached."""
+    names = official_names(depth)
+    ours: dict[str, Tensor] = {}
+    for key, value in official.items():
+        value = value.detach()
+        if key == "feature_net.0.weight":
+            ours["input_static.weight"] = value[:, :static_dim]
+            ours["input_time.weight"] = value[:, static_dim:]
+        elif key in names:
+            ours[names[key]] = value
+    return ours
+
+
+@dataclasses.dataclass(frozen=True)
+class OfficialWeights:
+    """What :func:`read_official_state_dict` found in an official state dict.
+
+    Attributes:
+        sizes: the :class:`~dego.DecoupledDeformation` size arguments (``feature_dim``,
+            ``hidden_dim``, ``depth``, ``time_dim``, ``pos_levels``, ``time_levels``,
+            ``head_hidden``).
+        tensors: official key (prefix removed) -> value, for every key that fits, in the
+            official module's order.
+        skipped: ``strict=False`` only: the report of the keys that did not fit (``None``
+            when all did).
+    """
+
+    sizes: dict[str, int]
+    tensors: dict[str, Tensor]
+    skipped: str | None
+
+
+@typechecked
+def read_official_state_dict(
+    state_dict: Mapping[str, Any], prefix: str, strict: bool, kwargs: dict[str, Any]
+) -> OfficialWeights:
+    """The checks of :meth:`DecoupledDeformation.from_official_state_dict`, on the keys and
+    shapes alone (nothing is built): the sizes (popped from ``kwargs``, as is ``preset``),
+    the tensors that fit, and the report of the others.
+
+    Raises:
+        StateDictMismatchError: keys do not match and ``strict``, or sizes that cannot be
+            inferred and are not given.
+        TypeError: ``state_dict`` is not a mapping, ``prefix`` not a str, ``strict`` not a
+            bool.
+        ValueError: ``preset`` other than ``"official"`` or ``head_hidden`` other than
+            ``hidden_dim`` in ``kwargs``; a size out of range.
+    """
     if not isinstance(state_dict, Mapping):
         raise TypeError(f"state_dict: expected a mapping, got {type(state_dict).__name__}")
     if isinstance(state_dict.get("state_dict"), Mapping):  # a whole checkpoint file
@@ -320,8 +355,8 @@ def load_official_state_dict(
             f"got head_hidden={sizes['head_hidden']}"
         )
     sizes["head_hidden"] = sizes["hidden_dim"]
-    # Everything below is checked on the keys and shapes alone; the module is built last,
-    # once its size is known to be sane.
+    # Everything below is checked on the keys and shapes alone; the caller builds the
+    # module last, once its size is known to be sane.
     for name, low in [
         ("feature_dim", 0),
         ("pos_levels", 0),
@@ -383,34 +418,20 @@ def load_official_state_dict(
     if unknown and not strict:
         lines.append(f"cannot infer {', '.join(unknown)} from the state dict; pass them")
         raise StateDictMismatchError(_mismatch_message(sizes, prefix, lines))
-    if lines:
-        message = _mismatch_message(sizes, prefix, lines)
-        if strict:
-            raise StateDictMismatchError(message)
-        warnings.warn(
-            f"from_official_state_dict(strict=False) skipped keys; the parameters they "
-            f"would fill keep their initialisation. {message}",
-            stacklevel=3,
-        )
-    module = cls(**sizes, preset="official", **kwargs)  # type: ignore[arg-type]
-
-    # dtype and device from the first layer (else any floating tensor that fits)
-    fitting = [k for k in expected if k in given and k not in problems]
-    reference = next((given[k] for k in ["feature_net.0.weight", *fitting] if k in fitting), None)
-    if reference is not None:
-        module = module.to(dtype=reference.dtype, device=reference.device)
-    params = dict(module.named_parameters())
-    names = official_names(module)
-    static_dim = module.input_static.in_features
-    with torch.no_grad():
-        for key in fitting:
-            value = given[key].detach()
-            if key == "feature_net.0.weight":
-                params["input_static.weight"].copy_(value[:, :static_dim])
-                params["input_time.weight"].copy_(value[:, static_dim:])
-            elif key in names:
-                params[names[key]].copy_(value)
-    return module
+    skipped = _mismatch_message(sizes, prefix, lines) if lines else None
+    if skipped is not None and strict:
+        raise StateDictMismatchError(skipped)
+    fitting = {k: given[k] for k in expected if k in given and k not in problems}
+    return OfficialWeights(sizes=sizes, tensors=fitting, skipped=skipped)
 
 
-__all__ = ["OFFICIAL_CHECKPOINT_PREFIX", "StateDictMismatchError"]
+__all__ = [
+    "OFFICIAL_CHECKPOINT_PREFIX",
+    "OfficialWeights",
+    "StateDictMismatchError",
+    "from_official_tensors",
+    "official_names",
+    "official_state_dict",
+    "official_tensors",
+    "read_official_state_dict",
+]

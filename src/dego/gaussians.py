@@ -419,6 +419,7 @@ class GaussianSet(_serialization.DictForm):
         """``(name, tensor)`` for every present field, in declaration order."""
         return [(n, getattr(self, n)) for n in self.FIELDS if getattr(self, n) is not None]
 
+    @typechecked
     def map(self, fn: Callable[[str, Tensor], Tensor]) -> GaussianSet:
         """A new set with ``fn(name, tensor)`` applied to every present field."""
         return GaussianSet(**{name: fn(name, value) for name, value in self.items()})
@@ -511,12 +512,13 @@ class GaussianSet(_serialization.DictForm):
         """A copy whose tensors are detached from the autograd graph."""
         return self.map(lambda _, t: t.detach())
 
+    @typechecked
     def replace(self, **fields: Tensor | None) -> GaussianSet:
         """A new set with some fields replaced (re-validated); ``features=None`` drops features."""
         unknown = sorted(set(fields) - set(self.FIELDS))
         if unknown:
             raise TypeError(f"replace: unknown field(s) {unknown}; valid fields are {self.FIELDS}")
-        return dataclasses.replace(self, **fields)
+        return dataclasses.replace(self, **fields)  # type: ignore[arg-type]  # None drops features
 
     @typechecked
     def select(
@@ -562,6 +564,7 @@ class GaussianSet(_serialization.DictForm):
         return self.map(gather)
 
     @staticmethod
+    @typechecked
     def cat(sets: Sequence[GaussianSet]) -> GaussianSet:
         """Concatenate sets along N; they must share batch shape, dtype, device and features."""
         if len(sets) == 0:
@@ -590,6 +593,7 @@ class GaussianSet(_serialization.DictForm):
         )
 
     @staticmethod
+    @typechecked
     def stack(sets: Sequence[GaussianSet]) -> GaussianSet:
         """Stack unbatched sets of possibly different N into one ``(len(sets), N_max)`` batch.
 
@@ -650,15 +654,15 @@ def _gaussian_axis(name: str, t: Tensor) -> int:
 
 
 def _padding_like(s: GaussianSet, count: int) -> GaussianSet:
-    kw = {"dtype": s.dtype, "device": s.device}
-    quats = torch.zeros(count, 4, **kw)
+    means = s.means.new_zeros(count, 3)
+    quats = s.means.new_zeros(count, 4)
     quats[:, 0] = 1
-    features = None if s.features is None else torch.zeros(count, s.features.shape[-1], **kw)
+    features = None if s.features is None else s.means.new_zeros(count, s.features.shape[-1])
     return GaussianSet(
-        means=torch.zeros(count, 3, **kw),
+        means=means,
         quats=quats,
-        scales=torch.ones(count, 3, **kw),
-        opacities=torch.zeros(count, **kw),
+        scales=s.means.new_ones(count, 3),
+        opacities=s.means.new_zeros(count),
         features=features,
     )
 

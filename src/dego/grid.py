@@ -146,8 +146,11 @@ class VoxelGrid:
             floating = like.is_floating_point()
             dtype = compute_dtype(like.dtype) if floating else torch.get_default_dtype()
             device = like.device
-        kw = {"dtype": dtype or torch.get_default_dtype(), "device": device}
-        return torch.tensor(self.lower, **kw), torch.tensor(self.voxel_size, **kw)
+        dtype = dtype or torch.get_default_dtype()
+        return (
+            torch.tensor(self.lower, dtype=dtype, device=device),
+            torch.tensor(self.voxel_size, dtype=dtype, device=device),
+        )
 
     def centers(
         self, *, dtype: torch.dtype | None = None, device: torch.device | str | None = None

@@ -84,6 +84,7 @@ WORK_BYTES_PER_RAY = 800
 """Working memory of the traversal per ray of a chunk (measured peak about 650 bytes)."""
 
 
+@typechecked
 def generate_lidar_rays() -> Float[Tensor, "14040 3"]:
     """SparseOcc's RayIoU ray pattern: 39 pitches x 360 azimuths, unit float32 directions.
 

@@ -28,7 +28,7 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 import torch
@@ -111,6 +111,12 @@ def _float_numpy(x: Tensor | np.ndarray) -> np.ndarray:
     return x.astype(np.float32) if x.dtype == np.float16 else x  # matplotlib has no float16
 
 
+def _unit_rgb(rgb: RGB) -> tuple[float, float, float]:
+    """0-255 RGB as matplotlib's 0-1 floats."""
+    r, g, b = (v / 255.0 for v in rgb)
+    return r, g, b
+
+
 def _palette_lut(free_label: int, free_color: RGB) -> Tensor:
     lut = torch.tensor(PALETTE, dtype=torch.uint8)
     lut[free_label] = torch.tensor(free_color, dtype=torch.uint8)
@@ -141,6 +147,14 @@ def _present_classes(labels: Tensor, free_label: int) -> list[int]:
 # --------------------------------------------------------------------------- pure
 
 
+@overload
+def colorize_labels(
+    labels: Integer[Tensor, "*shape"], *, free_label: int = ..., free_color: RGB = ...
+) -> UInt8[Tensor, "*shape 3"]: ...
+@overload
+def colorize_labels(
+    labels: Integer[np.ndarray, "*shape"], *, free_label: int = ..., free_color: RGB = ...
+) -> UInt8[np.ndarray, "*shape 3"]: ...
 @typechecked
 def colorize_labels(
     labels: Integer[Tensor, "*shape"] | Integer[np.ndarray, "*shape"],
@@ -170,6 +184,14 @@ def colorize_labels(
     return lut[index].numpy()
 
 
+@overload
+def bev_labels(
+    labels: Integer[Tensor, "*batch X Y Z"], *, free_label: int = ...
+) -> Integer[Tensor, "*batch X Y"]: ...
+@overload
+def bev_labels(
+    labels: Integer[np.ndarray, "*batch X Y Z"], *, free_label: int = ...
+) -> Integer[np.ndarray, "*batch X Y"]: ...
 @typechecked
 def bev_labels(
     labels: Integer[Tensor, "*batch X Y Z"] | Integer[np.ndarray, "*batch X Y Z"],
@@ -246,7 +268,7 @@ def add_class_legend(
         _label_tensor("classes", torch.tensor(chosen, dtype=torch.long))
     handles = [
         Patch(
-            facecolor=np.array(PALETTE[c]) / 255.0,
+            facecolor=_unit_rgb(PALETTE[c]),
             edgecolor="0.35",
             linewidth=0.5,
             label=CLASS_NAMES[c],
@@ -376,6 +398,8 @@ def plot_occupancy_3d(
         ax = _new_figure((6.0, 5.0)).add_subplot(projection="3d")
     elif getattr(ax, "name", None) != "3d":
         raise ValueError("ax: expected a 3D axes, e.g. fig.add_subplot(projection='3d')")
+    # an mpl_toolkits.mplot3d Axes3D, which matplotlib ships without type information
+    axes3d: Any = ax
 
     occupied = index != free_label
     padded = torch.zeros(tuple(n + 2 for n in shape), dtype=torch.bool)
@@ -400,10 +424,10 @@ def plot_occupancy_3d(
     if shade:  # side-only voxels darker, so that heights read; top faces keep the palette
         colours[covered[tuple(voxels.T)].numpy()] *= 0.7
     if marker_size is None:
-        fig = ax.figure
+        fig = ax.figure.figure  # the root Figure (ax.figure may be a SubFigure)
         width_pt = ax.get_position().width * fig.get_figwidth() * 72.0
         marker_size = max(0.5, (1.4 * width_pt / max(shape[0], shape[1])) ** 2)
-    ax.scatter(
+    axes3d.scatter(
         centres[:, 0],
         centres[:, 1],
         centres[:, 2],
@@ -416,12 +440,12 @@ def plot_occupancy_3d(
     (x_lo, x_hi), (y_lo, y_hi), (z_lo, z_hi) = bounds
     ax.set_xlim(x_lo, x_hi)
     ax.set_ylim(y_lo, y_hi)
-    ax.set_zlim(z_lo, z_hi)
-    ax.set_box_aspect((x_hi - x_lo, y_hi - y_lo, z_hi - z_lo))
-    ax.view_init(elev=float(elev), azim=float(azim))
+    axes3d.set_zlim(z_lo, z_hi)
+    axes3d.set_box_aspect((x_hi - x_lo, y_hi - y_lo, z_hi - z_lo))
+    axes3d.view_init(elev=float(elev), azim=float(azim))
     ax.set_xlabel(f"x [{unit}]")
     ax.set_ylabel(f"y [{unit}]")
-    ax.set_zlabel(f"z [{unit}]")
+    axes3d.set_zlabel(f"z [{unit}]")
     if title is not None:
         ax.set_title(title)
     return ax
@@ -520,8 +544,8 @@ def camera_panels(
 
     _check_free(free_label, free_color)
     panel_width = check_positive("panel_width", panel_width)
-    given = {"images": images, "depth": depth, "semantics": semantics}
-    given = {name: value for name, value in given.items() if value is not None}
+    offered = {"images": images, "depth": depth, "semantics": semantics}
+    given = {name: value for name, value in offered.items() if value is not None}
     if not given:
         raise ValueError("camera_panels: pass at least one of images, depth, semantics")
     first, num_cameras = next((name, value.shape[0]) for name, value in given.items())
@@ -563,12 +587,13 @@ def camera_panels(
             valid = np.isfinite(values) & (values > 0)
             top = max_depth or (float(values[valid].max()) if valid.any() else 1.0)
             masked = np.ma.masked_array(values, mask=~valid)
-            image = None
-            for v in range(num_cameras):
-                image = axes[row, v].imshow(
+            drawn = [
+                axes[row, v].imshow(
                     masked[v], cmap=cmap, vmin=0.0, vmax=top, interpolation="nearest"
                 )
-            fig.colorbar(image, ax=list(axes[row]), label="depth [m]", shrink=0.9)
+                for v in range(num_cameras)
+            ]
+            fig.colorbar(drawn[-1], ax=list(axes[row]), label="depth [m]", shrink=0.9)
         else:
             labels = _label_tensor("semantics", data).cpu()
             rgb = colorize_labels(labels, free_label=free_label, free_color=free_color).numpy()

@@ -12,6 +12,7 @@ fixed_mask=0.0)(canonical, features, times), logits, canonical)``.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 from jaxtyping import Float, Int
@@ -117,7 +118,7 @@ class TemporalOffsetNetwork(nn.Module):
         self, features: Float[Tensor, "B N C"], time_indices: Int[Tensor, "B T"]
     ) -> Float[Tensor, "B T N 3"]:
         """The raw offsets, ``(B, T, N, 3)``, for validated inputs (see :meth:`forward`)."""
-        first = self.ffn[0]
+        first = cast(nn.Linear, self.ffn[0])
         c = self.feature_dim
         # ffn on [f, e_t] with the first layer split, so [f] is projected once for all T
         per_gaussian = nn.functional.linear(features, first.weight[:, :c], first.bias)
@@ -160,7 +161,7 @@ class TemporalOffsetNetwork(nn.Module):
                 f"features: expected shape ({b}, {n}, {self.feature_dim}), got "
                 f"{tuple(features.shape)}"
             )
-        _check_like_gaussians(gaussians, self.ffn[0].weight, features)
+        _check_like_gaussians(gaussians, cast(nn.Linear, self.ffn[0]).weight, features)
         if time_indices.device != gaussians.device:
             raise ValueError(
                 f"time_indices: expected on {gaussians.device} like gaussians, got "

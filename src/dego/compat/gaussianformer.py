@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Iterator
-from typing import Literal
+from typing import Literal, TypedDict
 
 import torch
 from jaxtyping import Float
@@ -56,6 +56,13 @@ GF2_EMPTY_THRESHOLD = 1e-9
 
 # dego's field names in the errors of GaussianSet / voxelize -> this module's argument names
 _RENAMED = {"quats": "rotations", "features": "semantics"}
+
+
+class _Like(TypedDict):
+    """Where new tensors go: ``torch.zeros(..., **like)``."""
+
+    dtype: torch.dtype
+    device: torch.device
 
 
 @contextlib.contextmanager
@@ -174,7 +181,7 @@ def aggregate_gf1(
         if isinstance(empty_logit, int | float) and not math.isfinite(empty_logit):
             raise ValueError(f"empty_logit: expected a finite number, got {empty_logit!r}")
         b, c = means.shape[0], semantics.shape[-1]
-        like = {"dtype": means.dtype, "device": means.device}
+        like: _Like = {"dtype": means.dtype, "device": means.device}
         logit = torch.as_tensor(empty_logit, **like).reshape(1, 1, 1).expand(b, 1, 1)
         features = torch.cat([semantics, semantics.new_zeros(*semantics.shape[:2], 1)], -1)
         empty_features = torch.cat([torch.zeros(b, 1, c, **like), logit], -1)

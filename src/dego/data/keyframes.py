@@ -101,4 +101,6 @@ def _pose_matrices(translations: np.ndarray, rotations: np.ndarray) -> Tensor:
     The quaternions are normalised first (as pyquaternion's ``rotation_matrix``).
     """
     rotations = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
-    return pose_matrices("poses", torch.from_numpy(np.concatenate([translations, rotations], axis=-1)))
+    return pose_matrices(
+        "poses", torch.from_numpy(np.concatenate([translations, rotations], axis=-1))
+    )

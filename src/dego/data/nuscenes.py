@@ -127,15 +127,15 @@ def load_nuscenes_keyframes(root: PathLike, version: str = "v1.0-trainval") -> t
     stamps: list[int] = []
     lidar_t, lidar_q, ego_t, ego_q = [], [], [], []
     for token, _ in order:
-        row = lidar_frames.get(token)
-        if row is None:
+        frame = lidar_frames.get(token)
+        if frame is None:
             raise ValueError(
                 f"sample_data.json: sample {token!r} has no {_CHANNEL} key frame "
                 "(is_key_frame true, LIDAR_TOP calibrated_sensor)"
             )
-        sd_token = row["token"]
-        cs_token = row["calibrated_sensor_token"]
-        pose_token = _field(row, "ego_pose_token", "sample_data", sd_token)
+        sd_token = frame["token"]
+        cs_token = frame["calibrated_sensor_token"]
+        pose_token = _field(frame, "ego_pose_token", "sample_data", sd_token)
         translation, rotation = _pose(calibrated[cs_token], "calibrated_sensor", cs_token)
         lidar_t.append(translation)
         lidar_q.append(rotation)

@@ -510,7 +510,10 @@ class Occ3DDataset(Dataset[Occ3DSample]):
         self.samples: tuple[tuple[str, str], ...] = tuple(
             _parse_info(i, info) for i, info in enumerate(infos)
         )
-        self.expected_shape = None if expected_shape is None else tuple(expected_shape)
+        self.expected_shape: Shape3 | None = None
+        if expected_shape is not None:
+            x, y, z = expected_shape
+            self.expected_shape = (x, y, z)
         self.num_classes = num_classes
 
     @classmethod

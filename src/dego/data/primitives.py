@@ -15,6 +15,7 @@ import math
 import torch
 from torch import Tensor
 
+from dego._typing import check_tensor_fields, typechecked
 from dego.classes import FREE_LABEL
 from dego.grid import VoxelGrid
 
@@ -61,6 +62,9 @@ class Primitives:
         shades: ``(P,)`` brightness factors for rendering, in (0, 1].
     """
 
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
+
     kinds: Tensor
     centers: Tensor
     rotations: Tensor
@@ -80,6 +84,7 @@ class Primitives:
         )
 
     @staticmethod
+    @typechecked
     def make(
         kind: int,
         centers: Tensor,
@@ -114,6 +119,7 @@ class Primitives:
     def __len__(self) -> int:
         return self.kinds.shape[0]
 
+    @typechecked
     def transformed(self, rotation: Tensor, translation: Tensor) -> Primitives:
         """The solids under ``x -> rotation @ x + translation`` (a rigid motion)."""
         r, t = rotation.float(), translation.float()
@@ -135,6 +141,7 @@ class Primitives:
         rel = (points - self.centers[owner]).unsqueeze(-1)
         return (self.rotations[owner].transpose(-1, -2) @ rel).squeeze(-1)
 
+    @typechecked
     def signed_distance(self, owner: Tensor, points: Tensor) -> Tensor:
         """``(M,)`` signed distance of ``points[m]`` to solid ``owner[m]`` (negative
         inside). The ellipsoid's is approximate: exact on its surface, a lower bound
@@ -177,6 +184,7 @@ class Primitives:
                 t[pairs] = entry(o[pairs], d[pairs], size[pairs])
         return t
 
+    @typechecked
     def intersect(self, origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """First hit of each ray ``(R, 3)`` among all solids: ``(t (R,), index (R,))`` with
         ``t`` in units of ``directions`` (``inf`` and index -1 where nothing is hit).

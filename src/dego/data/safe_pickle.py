@@ -25,7 +25,7 @@ import os
 import pickle
 import struct
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -104,7 +104,8 @@ def _checked_dtype(dtype: Any) -> np.dtype:
             fields = dtype.fields
             assert fields is not None
             entries = [fields[name] for name in dtype.names]
-            spec: dict[str, Any] = {
+            # numpy's stubs type a fields dict as a TypedDict of literal keys; this one is built
+            spec: Any = {
                 "names": list(dtype.names),
                 "formats": [_checked_dtype(entry[0]) for entry in entries],
                 "offsets": [int(entry[1]) for entry in entries],
@@ -127,7 +128,7 @@ def _reconstruct(subtype: Any, shape: Any, typecode: Any) -> np.ndarray:
         raise UnsafePickleError(
             f"numpy _reconstruct may only rebuild numpy.ndarray, got {type(subtype).__name__}"
         )
-    return _multiarray._reconstruct(_CheckedArray, (0,), b"b")
+    return cast(np.ndarray, _multiarray._reconstruct(_CheckedArray, (0,), b"b"))
 
 
 def _scalar(dtype: Any, *data: Any) -> Any:
@@ -137,7 +138,10 @@ def _scalar(dtype: Any, *data: Any) -> Any:
 def _frombuffer(buffer: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
     if not isinstance(buffer, bytes | bytearray):
         raise ValueError("numpy _frombuffer: expected in-band bytes")
-    return _numeric._frombuffer(buffer, _checked_dtype(dtype), shape, order)
+    # numpy's stubs leave out the private _frombuffer (what ndarray.__reduce__ pickles)
+    return _numeric._frombuffer(  # type: ignore[attr-defined]
+        buffer, _checked_dtype(dtype), shape, order
+    )
 
 
 def _dtype(obj: Any, align: Any = False, copy: Any = False) -> np.dtype:

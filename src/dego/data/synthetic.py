@@ -27,6 +27,7 @@ from torch import Tensor
 
 from dego._checks import check_int, check_positive
 from dego._policy import check_memory
+from dego._typing import check_tensor_fields
 from dego.classes import FREE_LABEL, PALETTE, Occ3DLabel
 from dego.data.primitives import BOX, CYLINDER, ELLIPSOID, Primitives, axis_to_matrix, yaw_matrix
 from dego.grid import VoxelGrid
@@ -94,6 +95,9 @@ class SyntheticFrame:
         agent_poses: ``(A, 4, 4)`` float64 agent -> world poses of every agent of
             ``scene.agents`` at this frame's time (:meth:`SyntheticAgent.pose`).
     """
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
 
     time: float
     offset: int

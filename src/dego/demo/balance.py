@@ -14,12 +14,12 @@ class _BalancedGradient(torch.autograd.Function):
     while the canonical parameters still get the unchanged gradient."""
 
     @staticmethod
-    def forward(ctx, deformed: Tensor, canonical: Tensor, keep: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, deformed: Tensor, canonical: Tensor, keep: Tensor) -> Tensor:
         ctx.save_for_backward(keep)
         return deformed.clone()
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, Tensor, None]:  # type: ignore[override]
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, Tensor, None]:
         (keep,) = ctx.saved_tensors
         norm = grad.norm(dim=-1, keepdim=True)  # (1, N, 1)
         active = keep[..., None] & (norm > 0)

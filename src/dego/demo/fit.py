@@ -99,7 +99,7 @@ class FitConfig:
         lr: Adam learning rates per parameter group (missing groups take the defaults;
             ``"offsets"``: the ``free-offsets`` reference's per-frame offsets).
         depth_weight: weight of the L1 depth loss (per metre).
-        deformation_weight: weight of ``deformation_loss(...)["total"]`` (0.001; it was 0.1
+        deformation_weight: weight of ``deformation_loss(...).total`` (0.001; it was 0.1
             in dego 0.1.0: then ``L_reg``, a mean over *Gaussians*, cost ~0.08 at the
             agents' true motion against a best rendering gain of ~0.002, a mean over
             *pixels*, and the fit kept every agent still).
@@ -317,7 +317,7 @@ def gaussians_at(
     keep = deformable(model)
     if keep is not None:
         output = output.gated(keep, canonical)
-    losses = deformation_loss(output)
+    losses = deformation_loss(output).to_dict()  # plus "sparsity" below
     if deformation.fixed_mask is None and mask_sparsity > 0:
         losses["sparsity"] = output.rigid_mask.mean()
         losses["total"] = losses["total"] + mask_sparsity * losses["sparsity"]

@@ -68,18 +68,20 @@ class GaussianSceneModel(nn.Module):
                 f"means, scales: expected two (N, 3) tensors, got {tuple(means.shape)} and "
                 f"{tuple(scales.shape)}"
             )
-        n, kw = means.shape[0], {"dtype": means.dtype}
+        n, dtype = means.shape[0], means.dtype
 
         def small_normal(*shape: int) -> Tensor:
-            return 0.01 * torch.randn(*shape, generator=generator, **kw).to(means.device)
+            return 0.01 * torch.randn(*shape, generator=generator, dtype=dtype).to(means.device)
 
-        identity = torch.zeros(n, 4, **kw, device=means.device)
+        identity = torch.zeros(n, 4, dtype=dtype, device=means.device)
         identity[:, 0] = 1
         self.means = nn.Parameter(means.clone())
         self.quats = nn.Parameter(identity)
         self.log_scales = nn.Parameter(scales.log())
         self.opacity_logits = nn.Parameter(
-            torch.full((n,), float(torch.logit(torch.tensor(opacity))), **kw, device=means.device)
+            torch.full(
+                (n,), float(torch.logit(torch.tensor(opacity))), dtype=dtype, device=means.device
+            )
         )
         self.semantic_logits = nn.Parameter(small_normal(n, NUM_OCCUPIED))
         self.latent = nn.Parameter(10 * small_normal(n, latent_dim))

@@ -73,6 +73,7 @@ def camera_figure(result: FitResult, clip: DemoClip, camera: int = CAMERA) -> An
     rendered = render(gaussians, clip, index, torch.tensor([camera]))  # that camera only
     probabilities = torch.cat([rendered.features[0], 1 - rendered.alpha[0][:, None]], 1)
     semantics = probabilities.argmax(1)[0].cpu()
+    assert rendered.depth is not None  # splat renders the expected depth by default
     depth = torch.where(rendered.alpha[0, 0] > 0.5, rendered.depth[0, 0], 0).cpu()
     pseudo_depth = clip.depth[index, camera].cpu()
     far = float(pseudo_depth.max().clamp_min(1))

@@ -11,6 +11,7 @@ There is never a silent fall-back to a single origin.
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -53,10 +54,10 @@ class OriginSource:
 
 
 def choose_source(
-    infos: str | Path | None,
-    nuscenes: str | Path | None,
+    infos: str | os.PathLike[str] | None,
+    nuscenes: str | os.PathLike[str] | None,
     version: str,
-    origins: str | Path | None,
+    origins: str | os.PathLike[str] | None,
 ) -> tuple[OriginSource | None, tuple[str, ...]]:
     """The preferred source among those given, and the descriptions of those ignored."""
     given = []

@@ -18,6 +18,7 @@ from typing import Any
 
 from torch import Tensor
 
+from dego._typing import check_tensor_fields
 from dego.evaluation.errors import SampleFailure
 from dego.metrics.rayiou import RayIoUReport
 from dego.metrics.report import OccupancyReport
@@ -64,6 +65,9 @@ class EvaluationReport:
         traversal: how the rays were cast: ``"numba"`` (the compiled CPU kernel) or
             ``"torch"``, with identical hits.
     """
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
 
     protocols: Mapping[str, OccupancyReport]
     rayiou: RayIoUReport | None

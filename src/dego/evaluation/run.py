@@ -25,7 +25,7 @@ import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, TextIO, cast
 
 import numpy as np
 import torch
@@ -227,7 +227,8 @@ def prepare(
         device=device,
     )
     origins_fn = None
-    if rayiou:  # every origin exists (files) or every token is a keyframe (poses)
+    # every origin exists (files) or every token is a keyframe (poses); source is not None
+    if rayiou and source is not None:
         origins_fn = open_origins(source, scene_of, [s.token for s in samples], keyframes)
     return plan, origins_fn
 
@@ -291,7 +292,7 @@ class Tally:
         self.scored += 1
         if "rayiou" in self.metrics:
             self.origins += k
-            self.rays_cast += k * int(self.metrics["rayiou"].rays.shape[0])
+            self.rays_cast += k * int(cast(RayIoU, self.metrics["rayiou"]).rays.shape[0])
 
     def sync(self) -> None:
         """All-reduce the counts, gather the failures (a no-op outside torch.distributed)."""
@@ -376,8 +377,10 @@ def build_report(
             ray = counts["rayiou"]
             rays_scored = int(ray["gt_count"].sum())
             if rays_scored > 0:
-                spec = RayIoU(class_ids=plan.classes)._spec
-                ray_report = spec.report(ray["gt_count"], ray["pred_count"], ray["true_positives"])
+                ray_spec = RayIoU(class_ids=plan.classes)._spec
+                ray_report = ray_spec.report(
+                    ray["gt_count"], ray["pred_count"], ray["true_positives"]
+                )
     return EvaluationReport(
         protocols=protocols,
         rayiou=ray_report,

@@ -106,7 +106,7 @@ def confusion_matrix(
     mask: Tensor | np.ndarray | None = None,
     *,
     num_classes: int = 18,
-    ignore_label: int | None = 255,
+    ignore_label: int | np.integer | None = 255,
     removed_classes: Sequence[int] = (),
 ) -> Tensor:
     """``(C, C)`` int64 confusion matrix (rows gt, columns pred) over the evaluated voxels.

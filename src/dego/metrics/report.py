@@ -12,7 +12,7 @@ from jaxtyping import Float, Integer
 from torch import Tensor
 
 from dego import _serialization
-from dego._typing import typechecked
+from dego._typing import check_tensor_fields, typechecked
 
 
 @typechecked
@@ -60,6 +60,9 @@ class OccupancyReport(_serialization.DictForm):
         class_names: names of all C labels.
     """
 
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
+
     per_class: Tensor
     miou: float
     iou: float
@@ -70,6 +73,7 @@ class OccupancyReport(_serialization.DictForm):
     class_names: tuple[str, ...]
 
     @classmethod
+    @typechecked
     def from_per_class(
         cls,
         per_class: Tensor | Sequence[float],

@@ -19,7 +19,10 @@ from dego._typing import typechecked
 FORMAT_VERSION = 1
 """Version of the ``.npz`` layout written by :class:`TeacherFeatureCache`."""
 
-_CACHE_DTYPES = {torch.float16: np.dtype(np.float16), torch.float32: np.dtype(np.float32)}
+_CACHE_DTYPES: dict[torch.dtype, np.dtype[np.floating]] = {
+    torch.float16: np.dtype(np.float16),
+    torch.float32: np.dtype(np.float32),
+}
 _SAFE_ID = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,199}")
 _REQUIRED = ("features", "format_version", "dtype", "sample_id", "camera")
 _SCALARS = {

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +25,7 @@ from torch import Tensor, nn
 from dego import _serialization
 from dego._checks import check_int, check_positive
 from dego._policy import check_dtype, check_memory
-from dego._typing import typechecked
+from dego._typing import check_tensor_fields, typechecked
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -36,6 +37,7 @@ def _rope_angles(positions: Tensor, dim: int, base: float) -> Tensor:
     return positions.double()[:, None] * inverse
 
 
+@typechecked
 def rotary_2d(x: Tensor, positions: Tensor, base: float = 100.0) -> Tensor:
     """Apply 2-D rotary position embedding to ``x (..., L, D)`` at ``positions (L, 2)``
     (row, column): the first half of D rotates with the row, the second with the column,
@@ -69,6 +71,7 @@ class AttentionBlock(nn.Module):
         hidden = int(dim * mlp_ratio)
         self.mlp = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, dim))
 
+    @typechecked
     def forward(self, x: Tensor, positions: Tensor) -> Tensor:
         batch, length, dim = x.shape
         # Explicit sizes (no -1): a batch or length of 0 stays a valid, empty view.
@@ -91,6 +94,9 @@ class TeacherOutput(_serialization.DictForm):
         patch_start_idx: special (camera + register) tokens at the start of each image's P.
         patch_grid: ``(H', W')``, so ``P = patch_start_idx + H' W'``.
     """
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
 
     spatial: list[Float[Tensor, "B T V P C"]]
     temporal: list[Float[Tensor, "B T V P C"]]
@@ -123,6 +129,9 @@ class FactorizedSpatioTemporalTeacher(nn.Module):
         rope_base: RoPE base frequency (VGGT: 100).
         normalize: subtract the ImageNet mean and divide by its std (inputs in [0, 1]).
     """
+
+    mean: Tensor  # buffers: ImageNet normalisation, (3, 1, 1)
+    std: Tensor
 
     def __init__(
         self,
@@ -209,8 +218,8 @@ class FactorizedSpatioTemporalTeacher(nn.Module):
         b, t, v, _, h, w = (int(n) for n in images_shape)
         p = self.patch_start_idx + (h // self.patch_size) * (w // self.patch_size)
         c, depth = self.embed_dim, len(self.spatial_blocks)
-        block = self.spatial_blocks[0]
-        heads, hidden = block.num_heads, block.mlp[0].out_features
+        block = cast(AttentionBlock, self.spatial_blocks[0])
+        heads, hidden = block.num_heads, cast(nn.Linear, block.mlp[0]).out_features
         scores = max(b * t * heads * (v * p) ** 2, b * v * heads * (t * p) ** 2)
         tokens = b * t * v * p
         nbytes = itemsize * (scores + tokens * (hidden + (2 * depth + 8) * c))
@@ -221,6 +230,7 @@ class FactorizedSpatioTemporalTeacher(nn.Module):
         )
         return nbytes, sizes
 
+    @typechecked
     def tokens(self, images: Float[Tensor, "B T V 3 H W"]) -> Tensor:
         """Initial tokens ``(B, T, V, P, C)``: camera, registers, then patches row-major."""
         self._check_images(images)

@@ -47,6 +47,8 @@ class FactorizedTeacherFeatures(nn.Module):
       only with a stop-gradient, a variance term or similar.
     """
 
+    weight: Tensor  # the buffer of projector="frozen"
+
     def __init__(
         self,
         in_dim: int,
@@ -81,6 +83,7 @@ class FactorizedTeacherFeatures(nn.Module):
             nn.init.orthogonal_(weight, generator=generator)
             self.register_buffer("weight", weight)
 
+    @typechecked
     def project(self, maps: Float[Tensor, "*batch C H W"]) -> Tensor:
         """Apply the projector per pixel: ``(*, in_dim, H, W)`` -> ``(*, out_dim, H, W)``."""
         x = maps.movedim(-3, -1)
@@ -88,6 +91,7 @@ class FactorizedTeacherFeatures(nn.Module):
         x = F.linear(x, self.weight.to(x.dtype)) if frozen else self.linear(x)
         return x.movedim(-1, -3)
 
+    @typechecked
     def select(
         self,
         teacher: TeacherOutput | Sequence[Tensor],
@@ -135,7 +139,7 @@ class FactorizedTeacherFeatures(nn.Module):
             t = s // num_cameras
             time = self._time(t)
             tokens = block.view(b, t, num_cameras, *block.shape[2:])[:, time]
-            start, grid = self.patch_start_idx, tuple(patch_grid)
+            start, grid = self.patch_start_idx, (patch_grid[0], patch_grid[1])
         rows, cols = grid
         if tokens.shape[-2] != start + rows * cols:
             raise ValueError(

@@ -13,7 +13,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from dego import _serialization
-from dego._typing import typechecked
+from dego._typing import check_tensor_fields, typechecked
 from dego.classes import FREE_LABEL
 
 
@@ -28,6 +28,9 @@ class VoxelOutput(_serialization.DictForm):
 
     density: Float[Tensor, "B X Y Z"]
     features: Float[Tensor, "B X Y Z C"]
+
+    def __post_init__(self) -> None:
+        check_tensor_fields(self)
 
     @typechecked
     def labels(
