@@ -20,6 +20,7 @@ from dego.deformation import DecoupledDeformation
 from dego.demo.clip import DemoClip, backproject
 from dego.demo.fit import gaussians_at
 from dego.demo.model import VEHICLE_CLASSES, GaussianSceneModel
+from dego.demo.offsets import FrameOffsets
 from dego.demo.score import OCCUPANCY_THRESHOLD, VariantScore, predict_labels, score_labels
 from dego.gaussians import GaussianSet
 from dego.metrics import OccupancyMetrics, OccupancyReport
@@ -104,7 +105,7 @@ def dynamic_counts(
 @torch.no_grad()
 def predict_clip(
     model: GaussianSceneModel,
-    deformation: DecoupledDeformation | None,
+    deformation: DecoupledDeformation | FrameOffsets | None,
     clip: DemoClip,
     threshold: float = OCCUPANCY_THRESHOLD,
 ) -> Int[Tensor, "T X Y Z"]:

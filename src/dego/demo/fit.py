@@ -215,7 +215,7 @@ class FitResult:
 
     variant: Variant
     model: GaussianSceneModel
-    deformation: DecoupledDeformation | None
+    deformation: DecoupledDeformation | FrameOffsets | None
     history: dict[str, list[float]]
     seconds: float
 
@@ -444,7 +444,7 @@ def fit_scene(
 
 def _frame_losses(
     model: GaussianSceneModel,
-    deformation: DecoupledDeformation | None,
+    deformation: DecoupledDeformation | FrameOffsets | None,
     clip: DemoClip,
     index: int,
     config: FitConfig,

@@ -33,6 +33,7 @@ class FrameOffsets(nn.Module):
     """
 
     fixed_mask = 0.0  # no rigidity mask to learn (what gaussians_at checks)
+    times: Tensor  # a buffer
 
     def __init__(
         self,
