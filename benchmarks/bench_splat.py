@@ -21,7 +21,8 @@ import torch
 
 from dego import GaussianSet, splat
 from dego.compat import gsplat as compat
-from dego.splatting import project_gaussians
+from dego.splatting import pipeline, project_gaussians
+from dego.splatting.types import SplatConfig
 
 from harness import (
     alternating_median_seconds,
@@ -147,7 +148,8 @@ def compat_overhead(
     gs: GaussianSet, w2c: torch.Tensor, k: torch.Tensor, repeats: int, device: torch.device
 ) -> None:
     """``dego.compat.gsplat.rasterization`` (gsplat's call and layout, packed meta) vs
-    ``dego.splat`` with the same rules, forward + backward, timed alternately."""
+    ``dego.splat`` with the same rules, and ``dego.splat``'s channels-first output vs the
+    pipeline's channels-last layout, forward + backward, timed alternately."""
 
     def direct(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
         out = splat(scene, w2c, k, (256, 704), radius_rule="gsplat>=1.5")
@@ -156,14 +158,26 @@ def compat_overhead(
     def wrapped(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
         return gsplat_call(compat.rasterization, scene, w2c, k)
 
-    runs = {"direct": forward_backward(direct, gs), "wrapped": forward_backward(wrapped, gs)}
+    config = SplatConfig(radius_rule="gsplat>=1.5")
+
+    def last(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
+        out = pipeline.render(scene, w2c, k, (256, 704), None, None, config, layout="channels_last")
+        return out.image, out.alpha
+
+    runs = {
+        "direct": forward_backward(direct, gs),
+        "last": forward_backward(last, gs),
+        "wrapped": forward_backward(wrapped, gs),
+    }
     medians = alternating_median_seconds(runs, device, repeats=max(repeats, 5))
-    direct_s, wrapped_s = medians["direct"], medians["wrapped"]
+    direct_s, last_s, wrapped_s = medians["direct"], medians["last"], medians["wrapped"]
     peaks = {name: peak_memory_mib(fn, device) for name, fn in runs.items()}
     print(
         f"  {'dego splat, radius_rule gsplat>=1.5':<44} {direct_s:8.3f} s   "
         f"peak {peaks['direct']:8.1f} MiB"
     )
+    print(f"  {'same, layout channels_last':<44} {last_s:8.3f} s   peak {peaks['last']:8.1f} MiB")
+    print(f"  channels-first / channels-last time: {direct_s / last_s:.3f}")
     print(
         f"  {'compat.gsplat.rasterization (packed)':<44} {wrapped_s:8.3f} s   "
         f"peak {peaks['wrapped']:8.1f} MiB"

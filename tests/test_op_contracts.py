@@ -471,24 +471,11 @@ CASES = [
                 "shape",
                 "means",
                 with_value("means", _drop_last),
-                xfail="project_gaussians is exported but not typechecked: (B, N, 2) means "
-                "raise a bare RuntimeError from a matmul, naming no argument",
             ),
             BadInput(
                 "mixed-dtype",
                 "intrinsics",
                 with_value("intrinsics", _other_float),
-                xfail="float64 intrinsics with float32 means raise a bare RuntimeError "
-                "('expected scalar type Double but found Float'), naming no argument",
-            ),
-            BadInput(
-                "nan",
-                "means",
-                with_nan("means"),
-                ValueError,
-                xfail="a NaN mean is not rejected: the Gaussian is silently culled (radius 0, "
-                "visible False) with NaN means2d, although culled Gaussians are documented "
-                "to get finite placeholders (only splat checks values)",
             ),
         ),
     ),

@@ -58,7 +58,6 @@ MODULES = (
 PENDING = {
     # src/dego/splatting/*
     "dego.splatting.projection.Projection.__post_init__",
-    "dego.splatting.projection.project_gaussians",
     "dego.splatting.splatter.SplatOutput.__post_init__",
     "dego.splatting.tiles.TileLists.__post_init__",
     "dego.splatting.tiles.build_tile_lists",

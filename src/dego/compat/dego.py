@@ -20,7 +20,8 @@ from dego._typing import typechecked
 from dego.classes import FREE_LABEL
 from dego.compat.gsplat import _DEPTH_MODES, RenderMode, _release_options
 from dego.gaussians import GaussianSet
-from dego.splatting.splatter import ImageSize, SplatConfig, render_channels_last
+from dego.splatting import pipeline
+from dego.splatting.types import ImageSize, SplatConfig
 from dego.voxelizer import VoxelOutput
 
 OFFICIAL_THRESHOLD = 0.05
@@ -119,7 +120,7 @@ def render_temporal(
         depth_mode=_DEPTH_MODES[mode],  # type: ignore[arg-type]
         **_release_options(gsplat_version),
     )
-    image, _, _ = render_channels_last(
+    image = pipeline.render(
         flat,
         world_to_cam.reshape(b * t, v, 4, 4),
         intrinsics.reshape(b * t, v, 3, 3),
@@ -127,7 +128,8 @@ def render_temporal(
         flat_features,
         None,
         config,
-    )
+        layout="channels_last",
+    ).image
     return image.contiguous().reshape(b, t * v, *image.shape[2:])
 
 

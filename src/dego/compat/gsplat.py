@@ -20,9 +20,9 @@ from torch import Tensor
 
 from dego._policy import float32_under_autocast
 from dego.gaussians import GaussianSet
-from dego.splatting import gsplat_backend
+from dego.splatting import gsplat_backend, pipeline
 from dego.splatting.projection import Projection
-from dego.splatting.splatter import SplatConfig, render_channels_last
+from dego.splatting.types import SplatConfig
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 _DEPTH_MODES = {"RGB": "none", "D": "accumulated", "ED": "expected"}
@@ -77,8 +77,7 @@ def _release(gsplat_version: str) -> tuple[int, int]:
 
 def _release_options(gsplat_version: str) -> dict[str, Any]:
     """The SplatConfig fields a gsplat release fixes: its radius rule and compositing constants."""
-    release = _release(gsplat_version)
-    return {"radius_rule": gsplat_backend.rule_of(release), **gsplat_backend.constants_of(release)}
+    return gsplat_backend.release_options(_release(gsplat_version))
 
 
 def _check_shape(name: str, tensor: Any, expected: tuple[int | str, ...]) -> None:
@@ -253,7 +252,7 @@ def rasterization(
         **release_options,
     )
     layout = _MetaLayout(batch, cameras, n, packed)
-    images, alphas, projection = render_channels_last(
+    out = pipeline.render(
         gaussians,
         viewmats.reshape(flat, cameras, 4, 4),
         Ks.reshape(flat, cameras, 3, 3),
@@ -261,13 +260,14 @@ def rasterization(
         features,
         background,
         config,
+        layout="channels_last",
         means2d_hook=layout.means2d_for_compositing,
         absgrad_sink=layout.receive_absgrad,
     )
     # a crop to a size that is not a multiple of the tile leaves a strided view
-    render_colors = images.contiguous().reshape(*batch, cameras, height, width, -1)
-    render_alphas = alphas.reshape(*batch, cameras, height, width, 1)
-    meta = layout.meta(projection, radius_rule)
+    render_colors = out.image.contiguous().reshape(*batch, cameras, height, width, -1)
+    render_alphas = out.alpha.reshape(*batch, cameras, height, width, 1)
+    meta = layout.meta(out.projection, radius_rule)
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     meta |= {"width": width, "height": height, "tile_size": tile_size}
     meta |= {"tile_width": tiles_x, "tile_height": tiles_y}
@@ -310,7 +310,8 @@ class _MetaLayout:
 
     def meta(self, projection: Projection, radius_rule: str) -> dict[str, Any]:
         radii = projection.radii_xy if radius_rule == "gsplat>=1.5" else projection.radii
-        fields = {
+        assert projection.opacities is not None  # the adapter always passes opacities
+        fields: dict[str, Tensor] = {
             "radii": radii,
             "depths": projection.depths,
             "conics": projection.conics,

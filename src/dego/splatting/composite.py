@@ -213,8 +213,8 @@ class _CompositeTiles(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(  # type: ignore[override]
-        ctx: torch.autograd.function.FunctionCtx,
+    def forward(
+        ctx: Any,
         means2d: Tensor,
         conics: Tensor,
         opacities: Tensor,
@@ -266,8 +266,8 @@ class _CompositeTiles(torch.autograd.Function):
         return out.view(num_tiles, tile_size, tile_size, dim), transmittance
 
     @staticmethod
-    def backward(  # type: ignore[override]
-        ctx: torch.autograd.function.FunctionCtx, grad_out: Tensor, grad_transmittance: Tensor
+    def backward(
+        ctx: Any, grad_out: Tensor, grad_transmittance: Tensor
     ) -> tuple[Tensor | None, ...]:
         means2d, conics, opacities, colors, origins = ctx.saved_tensors
         grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, colors)]

@@ -13,18 +13,23 @@ from __future__ import annotations
 
 import importlib.metadata
 import importlib.util
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from dego.gaussians import GaussianSet
 from dego.splatting.projection import RADIUS_SIGMA, Projection
+from dego.splatting.types import SplatConfig, SplatOutput
 
-if TYPE_CHECKING:
-    from dego.splatting.splatter import SplatConfig, SplatOutput
-
+# Every gsplat version fact dego relies on, keyed by release (major, minor).
 MIN_VERSION = (1, 4)
+"""The oldest release the backend and the adapters support."""
+RULE_CHANGE = (1, 5)
+"""The release from which gsplat uses per-axis, opacity-aware radii (``"gsplat>=1.5"``;
+one radius per Gaussian, ``"gsplat<=1.4"``, before) and returns ``meta["radii"]`` per axis."""
+BATCHED_FROM = (1, 5)
+"""The release from which ``rasterization`` takes batched inputs (1.4: one scene a call)."""
 MAX_ALPHA_CHANGE = (1, 6)
 """The release from which gsplat caps alpha at 0.99 (0.999 before; its commit c5ff586b)."""
 
@@ -36,6 +41,16 @@ def constants_of(version: tuple[int, int]) -> dict[str, float]:
         "alpha_min": 1 / 255,
         "transmittance_min": 1e-4,
     }
+
+
+def batched(version: tuple[int, int]) -> bool:
+    """Whether a gsplat release's ``rasterization`` takes batched ``[B, ...]`` inputs."""
+    return version >= BATCHED_FROM
+
+
+def release_options(version: tuple[int, int]) -> dict[str, Any]:
+    """The SplatConfig fields a gsplat release fixes: its radius rule and compositing constants."""
+    return {"radius_rule": rule_of(version), **constants_of(version)}
 
 
 def installed_version() -> tuple[int, int] | None:
@@ -57,7 +72,7 @@ def installed_version() -> tuple[int, int] | None:
 
 def rule_of(version: tuple[int, int]) -> str:
     """The radius rule that a gsplat release compiles in."""
-    return "gsplat>=1.5" if version >= (1, 5) else "gsplat<=1.4"
+    return "gsplat>=1.5" if version >= RULE_CHANGE else "gsplat<=1.4"
 
 
 def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool:
@@ -68,7 +83,8 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
         reasons.append("gsplat is not installed (pip install 'dego-occupancy[gsplat]')")
     elif version < MIN_VERSION:
         reasons.append(
-            f"gsplat {version[0]}.{version[1]} is older than 1.4 (pip install -U gsplat)"
+            f"gsplat {version[0]}.{version[1]} is older than {MIN_VERSION[0]}.{MIN_VERSION[1]} "
+            "(pip install -U gsplat)"
         )
     else:
         rule = rule_of(version)
@@ -82,7 +98,7 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
                 f"radius_sigma={config.radius_sigma} differs from gsplat's fixed "
                 f"{RADIUS_SIGMA[rule]}"
             )
-        if version < (1, 5) and config.absgrad and gaussians.batch_shape[0] > 1:
+        if not batched(version) and config.absgrad and gaussians.batch_shape[0] > 1:
             reasons.append("absgrad with gsplat 1.4 needs a batch of one (1.4 is unbatched)")
         for name, value in constants_of(version).items():
             if getattr(config, name) != value:
@@ -109,8 +125,6 @@ def render(
     """Render with ``gsplat.rasterization`` and convert to :class:`SplatOutput` layout."""
     from gsplat import rasterization
 
-    from dego.splatting.splatter import SplatOutput
-
     b, n = gaussians.batch_shape[0], gaussians.num_gaussians
     v = world_to_cam.shape[1]
     height, width = image_size
@@ -118,7 +132,7 @@ def render(
     depth_mode = {"expected": "ED", "accumulated": "D", "none": ""}[config.depth_mode]
     colors = (
         features
-        if channels
+        if features is not None and channels
         else torch.zeros(b, n, 1, dtype=gaussians.dtype, device=gaussians.device)
     )
     mode = ("RGB+" + depth_mode) if depth_mode else "RGB"
@@ -140,7 +154,7 @@ def render(
     }
     tensors = (gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities)
     version = installed_version()
-    if version is not None and version >= (1, 5):
+    if version is not None and batched(version):
         images, alphas, meta = rasterization(
             *tensors,
             colors,

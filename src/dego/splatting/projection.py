@@ -6,9 +6,12 @@ import dataclasses
 from typing import Literal
 
 import torch
+from jaxtyping import Float
 from torch import Tensor
 
 from dego._geometry import scaled_rotation_gram
+from dego._policy import check_dtype
+from dego._typing import typechecked
 
 _MAX_RADIUS = 1 << 24  # pixels; keeps the integer conversion finite for degenerate inputs
 
@@ -45,12 +48,13 @@ class Projection:
     opacities: Tensor | None = None
 
 
+@typechecked
 def project_gaussians(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    world_to_cam: Tensor,
-    intrinsics: Tensor,
+    means: Float[Tensor, "B N 3"],
+    quats: Float[Tensor, "B N 4"],
+    scales: Float[Tensor, "B N 3"],
+    world_to_cam: Float[Tensor, "B V 4 4"],
+    intrinsics: Float[Tensor, "B V 3 3"],
     image_size: tuple[int, int],
     *,
     near: float,
@@ -59,7 +63,7 @@ def project_gaussians(
     radius_sigma: float | None = None,
     radius_rule: RadiusRule = "gsplat<=1.4",
     radius_clip: float = 0.0,
-    opacities: Tensor | None = None,
+    opacities: Float[Tensor, "B N"] | None = None,
     rasterize_mode: RasterizeMode = "classic",
 ) -> Projection:
     """Project ``(B, N)`` Gaussians into ``(B, V)`` cameras; differentiable in the Gaussians.
@@ -77,8 +81,18 @@ def project_gaussians(
     ``sqrt(max(0, det(Sigma2d) / det(Sigma2d + eps2d I)))`` (differentiable). Culled
     Gaussians (z outside [near, far], degenerate 2D covariance, radius at most
     ``radius_clip`` on every axis, footprint fully off-image) get radius 0 and finite,
-    gradient-free placeholder values.
+    gradient-free placeholder values. Values are not checked here (NaN passes through);
+    :func:`~dego.splat` checks them.
+
+    Raises:
+        TypeError: naming a tensor whose dtype differs from ``means``'.
     """
+    tensors: dict[str, Tensor | None] = {"quats": quats, "scales": scales}
+    tensors |= {"world_to_cam": world_to_cam}
+    tensors |= {"intrinsics": intrinsics, "opacities": opacities}
+    for name, tensor in tensors.items():
+        if tensor is not None:
+            check_dtype(name, tensor, means.dtype, "means")
     if radius_sigma is None:
         radius_sigma = RADIUS_SIGMA[radius_rule]
     height, width = image_size
