@@ -1,6 +1,6 @@
 """Errors of every public op under torch.autocast against float32, for docs/validation.md.
 
-Each op of ``tests/compile_step.py`` runs on the same inputs in float32 and under
+Each op of ``tests/helpers/compile_step.py`` runs on the same inputs in float32 and under
 ``torch.autocast(device, dtype)``; the table gives the output dtype, the largest absolute
 error relative to the largest float32 value, and the same for the gradients of
 ``sum(output^2)`` with respect to the Gaussians' means and features (where the op has
@@ -21,7 +21,7 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dego import distillation_loss, voxelize
-from tests.compile_step import (
+from tests.helpers.compile_step import (
     GRID,
     StepInputs,
     StepModules,

@@ -1,7 +1,7 @@
 """dego under torch.compile: graph breaks per public op, and compiled vs eager timings.
 
 Graph breaks: ``torch._dynamo.explain`` of each public op alone on the small inputs of
-``tests/compile_step.py`` (splat, the gsplat adapter, voxelize, the deformation network,
+``tests/helpers/compile_step.py`` (splat, the gsplat adapter, voxelize, the deformation network,
 the teacher, the distillation loss, ray casting, both metric updates).
 W1: 6 surround cameras at 256 x 704, 10,000 Gaussians, C = 48, expected depth, forward +
     backward, eager vs ``torch.compile`` (inductor), timed alternately after the compile.
@@ -28,7 +28,7 @@ from harness import alternating_median_seconds, benchmark_parser, peak_memory_mi
 from scenes import occ3d_gaussians, surround_rig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tests.compile_step import OPS, make_inputs, make_modules, op_functions
+from tests.helpers.compile_step import OPS, make_inputs, make_modules, op_functions
 
 
 def graph_breaks() -> None:

@@ -4,7 +4,7 @@ Workload (the issue's): one Occ3D-sized sample (200 x 200 x 16) with a street-li
 layout (road and sidewalks, terrain, building walls, trees, parked cars, pedestrians,
 barriers), a prediction that differs from it (shifted objects, missing and spurious
 voxels), 8 origins x 14,040 rays, cast through pred and gt and scored. The scalar
-reference (``tests/ray_reference.py``, one Python loop per ray, the rules written out
+reference (``tests/reference/ray.py``, one Python loop per ray, the rules written out
 plainly) is timed on a subset of rays and extrapolated to the full sample.
 
 On a CPU it times RayIoU with both traversals, the compiled kernel (numba, when
@@ -30,7 +30,7 @@ from dego import RayIoU, VoxelGrid, cast_rays, generate_lidar_rays, raycast
 from harness import benchmark_parser, median_seconds, peak_memory_mib
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tests.ray_reference import cast_one
+from tests.reference.ray import cast_one
 
 
 def street_scene(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:

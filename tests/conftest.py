@@ -10,7 +10,10 @@ import pytest
 import torch
 from hypothesis import HealthCheck, settings
 
-from tests._repo import ROOT, SOURCE_TREE_REASON
+# Before the first import of them: pytest rewrites the asserts of test modules only.
+pytest.register_assert_rewrite("tests.helpers", "tests.reference")
+
+from tests.helpers.repo import ROOT, SOURCE_TREE_REASON  # noqa: E402
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # Under pytest-xdist every worker (and every process a test starts) computes on one

@@ -9,7 +9,7 @@ import torch
 from jaxtyping import TypeCheckError
 
 from dego import splat, voxelize
-from tests.compile_step import (
+from tests.helpers.compile_step import (
     GRID,
     HEIGHT,
     WIDTH,

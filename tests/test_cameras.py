@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from dego import quaternions_to_rotation_matrices
 from dego.cameras import apply_image_aug, resize_crop_intrinsics, split_projection
-from tests.strategies import batch_shapes, random_quaternions
+from tests.helpers.strategies import batch_shapes, random_quaternions
 
 NUSCENES_K = [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]]
 
@@ -414,7 +414,7 @@ def test_missing_camera_axes_name_the_argument_and_its_shape(keyword: bool) -> N
     """A camera argument without its (B, V) axes names itself, its expected shape and how
     to add the axes (issue 26: an ``intrinsics`` error advised ``world_to_cam[None]``)."""
     from dego import DifferentiableSplatter, splat
-    from tests.strategies import make_gaussian_set
+    from tests.helpers.strategies import make_gaussian_set
 
     gaussians = make_gaussian_set((1,), 4)
     world_to_cam = torch.eye(4, dtype=torch.float64).expand(1, 1, 4, 4)

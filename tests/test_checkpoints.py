@@ -38,7 +38,7 @@ from dego import (
     splat,
     voxelize,
 )
-from tests.strategies import gaussian_sets, make_gaussian_set
+from tests.helpers.strategies import gaussian_sets, make_gaussian_set
 
 
 def save_load(obj: Any) -> Any:

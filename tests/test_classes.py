@@ -23,7 +23,7 @@ from dego import (
 # The class colours of the DeGO paper's figures: the `\definecolor{...}{RGB}{...}` lines of its
 # LaTeX source (dego-paper.tex, lines 320-336), copied verbatim so this test needs nothing
 # outside the repository.
-PAPER_COLOURS = Path(__file__).resolve().parent / "data" / "paper_palette.tex"
+PAPER_COLOURS = Path(__file__).resolve().parent / "fixtures" / "paper_palette.tex"
 
 
 def test_labels_and_names() -> None:

@@ -7,8 +7,6 @@ failure injected into the file writes, and the Ctrl-C tests interrupt real proce
 
 from __future__ import annotations
 
-import errno
-import io
 import os
 import signal
 import subprocess
@@ -21,7 +19,8 @@ import torch
 
 import dego.cli
 from dego.cli import main
-from tests._repo import ROOT, needs_source_tree
+from tests.helpers.cli_faults import FullDisk
+from tests.helpers.repo import ROOT, needs_source_tree
 
 
 @pytest.fixture
@@ -207,45 +206,6 @@ def test_eval_output_paths_are_checked_before_scoring(
 
 
 # -- every output is written whole or not at all ---------------------------------------------
-
-
-class FullDisk:
-    """Replaces ``io.open`` / ``open``: of the files opened for writing in ``folder``, the
-    ``fail_at``-th takes half of what is written to it and then raises ENOSPC, like a disk
-    that fills up. (A file descriptor opened for writing counts as in ``folder``.)"""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch, folder: Path, fail_at: int = 2) -> None:
-        self.real, self.folder, self.fail_at, self.opened = io.open, folder, fail_at, 0
-        monkeypatch.setattr(io, "open", self)
-        monkeypatch.setattr("builtins.open", self)
-
-    def __call__(self, file, mode="r", *args, **kwargs):  # type: ignore[no-untyped-def]
-        handle = self.real(file, mode, *args, **kwargs)
-        if not any(flag in mode for flag in "wxa+"):
-            return handle
-        if not isinstance(file, int) and self.folder not in Path(file).resolve().parents:
-            return handle
-        self.opened += 1
-        return _Filling(handle) if self.opened == self.fail_at else handle
-
-
-class _Filling:
-    def __init__(self, handle) -> None:  # type: ignore[no-untyped-def]
-        self._handle = handle
-
-    def write(self, data):  # type: ignore[no-untyped-def]
-        self._handle.write(data[: len(data) // 2])
-        self._handle.flush()
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    def __getattr__(self, name: str):  # type: ignore[no-untyped-def]
-        return getattr(self._handle, name)
-
-    def __enter__(self) -> _Filling:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._handle.close()
 
 
 def _previous_run(out: Path, names: list[str]) -> dict[str, bytes]:

@@ -16,7 +16,7 @@ import dego
 from dego import VoxelGrid, splat, voxelize
 from dego._typing import _specs, _traced_check, typechecked
 from dego.splatting import composite
-from tests.compile_step import (
+from tests.helpers.compile_step import (
     HEIGHT,
     OPS,
     WIDTH,

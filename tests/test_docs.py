@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._repo import source_params
+from tests.helpers.repo import source_params
 
 DOCUMENTS = source_params(
     lambda root: [root / "README.md", *sorted((root / "docs").glob("*.md"))], ids=lambda p: p.name

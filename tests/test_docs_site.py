@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._repo import needs_source_tree
+from tests.helpers.repo import needs_source_tree
 
 
 @pytest.mark.skipif(

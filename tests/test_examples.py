@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._repo import ROOT, needs_source_tree
+from tests.helpers.repo import ROOT, needs_source_tree
 
 TMP = "{tmp}"  # replaced by the test's tmp_path
 

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from jaxtyping import TypeCheckError
 
 from dego import GaussianSet, quaternions_to_rotation_matrices
-from tests.strategies import gaussian_sets, make_gaussian_set, random_quaternions
+from tests.helpers.strategies import gaussian_sets, make_gaussian_set, random_quaternions
 
 QUAT_ORDERS = ("wxyz", "xyzw")
 ROTATIONS = ("R", "R^T")

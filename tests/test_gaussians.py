@@ -17,7 +17,7 @@ from dego import (
     normalize_quaternions,
     quaternions_to_rotation_matrices,
 )
-from tests.strategies import batch_shapes, gaussian_sets, make_gaussian_set
+from tests.helpers.strategies import batch_shapes, gaussian_sets, make_gaussian_set
 
 # ---------------------------------------------------------------------------------------
 # analytic cases

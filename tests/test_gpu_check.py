@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._repo import ROOT, SOURCE_TREE_REASON
+from tests.helpers.repo import ROOT, SOURCE_TREE_REASON
 
 SCRIPT = None if ROOT is None else ROOT / "benchmarks" / "gpu_check.sh"
 STEPS = [

@@ -10,7 +10,7 @@ from types import ModuleType
 
 import pytest
 
-from tests._repo import ROOT, SOURCE_TREE_REASON
+from tests.helpers.repo import ROOT, SOURCE_TREE_REASON
 
 pytestmark = pytest.mark.skipif(ROOT is None, reason=SOURCE_TREE_REASON)
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._repo import source_params
+from tests.helpers.repo import source_params
 
 NOTEBOOKS = source_params(
     lambda root: sorted((root / "examples").glob("*.ipynb")), ids=lambda p: p.stem

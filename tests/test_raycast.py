@@ -1,5 +1,5 @@
 """cast_rays / generate_lidar_rays: analytic rays, the DVR quirks, and exact agreement with
-the scalar reference in tests/ray_reference.py."""
+the scalar reference in tests/reference/ray.py."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from dego import _march_numba, raycast
 from dego.grid import VoxelGrid
 from dego.raycast import MAX_STEPS, _cast_product, cast_rays, generate_lidar_rays, observed_voxels
-from tests.ray_reference import (
+from tests.reference.ray import (
     REFERENCE_MAX_STEPS,
     cast_all,
     reference_lidar_rays,

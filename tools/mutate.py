@@ -8,7 +8,8 @@ fail (or time out), *survived* when they pass. Lines are chosen by a git diff (t
 change added) or by explicit ranges::
 
     python tools/mutate.py --base f5cc0df src/dego/_policy.py=tests/test_policy.py
-    python tools/mutate.py src/dego/_npz.py:40-120=tests/test_file_faults.py,tests/test_occ3d_io.py
+    python tools/mutate.py \\
+        src/dego/_npz.py:40-120=tests/test_file_faults.py,tests/data/test_occ3d_io.py
 
 ``FILE[:LINES]=TESTS``: ``LINES`` is ``a-b,c`` (default with ``--base``: the lines added
 since that revision); ``TESTS`` a comma-separated list of pytest targets. Docstrings,

@@ -67,7 +67,7 @@ class TeacherFeatureCache:
     Size: the official cache stores, per (sample, camera), a torch ``.pt`` dict with the
     float32 ``(1, 2048, 18, 50)`` VGGT block-22 map and the float32 ``(3, 252, 700)``
     input image, about 9.5 MB. Here the same map alone in float16 is about 3.7 MB, a
-    factor of about 2.6 smaller (measured in ``tests/test_teacher_cache.py``), with no
+    factor of about 2.6 smaller (measured in ``tests/teacher/test_cache.py``), with no
     pickle on load. ``savez_compressed`` saved only ~8% on such maps at ~100x the write
     time, so entries are not compressed.
     """

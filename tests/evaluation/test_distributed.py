@@ -1,0 +1,73 @@
+"""`dego eval` over several processes through torch.distributed (gloo, real processes):
+``--workers 2`` (spawned) and a 2-rank torchrun give the numbers of one process."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch.distributed as dist
+
+from dego.cli import main as cli_main
+from tests.helpers.evaluation import TOKENS, direct, make_tree
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(not dist.is_available(), reason="torch.distributed is not available"),
+]
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    return make_tree(tmp_path_factory.mktemp("occ3d"))
+
+
+def test_two_spawned_workers_equal_one_process(
+    tree: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pred = Path(shutil.copytree(tree["pred"], tmp_path / "pred"))
+    (pred / "tok-b0.npy").write_bytes(b"garbage")  # scored by rank 1: its failure is gathered
+    json_path = tmp_path / "r.json"
+    code = cli_main(
+        [
+            *("eval", "--gt", str(tree["gt"]), "--pred", str(pred)),
+            *("--origins", str(tree["origins"]), "--workers", "2", "--json", str(json_path)),
+        ]
+    )
+    out, err = capsys.readouterr()
+    assert code == 1, err
+    data = json.loads(json_path.read_text())
+    assert data["world_size"] == 2 and data["samples"] == 5
+    assert [f["token"] for f in data["failed"]] == ["tok-b0"]
+    expected = direct(tree, [t for t in TOKENS if t != "tok-b0"], rayiou=True)
+    for name, metric in expected.items():
+        for count in metric.COUNTS:
+            assert data["counts"][name][count] == getattr(metric, count).tolist(), (name, count)
+    assert data["rayiou"]["rayiou"] == expected["rayiou"].compute().rayiou
+    assert data["weak"]["miou"] == expected["weak"].compute().miou
+    assert data["rays"]["scored"] == int(expected["rayiou"].gt_count.sum())
+    assert "eval: 6/6 samples (100%)" in err  # the parent drew the progress of both ranks
+    assert "INCOMPLETE" in out
+
+
+def test_torchrun_two_ranks_equal_one_process(tree: dict, tmp_path: Path) -> None:
+    json_path = tmp_path / "r.json"
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    command += ["--nproc_per_node", "2", "-m", "dego", "eval", "--gt", str(tree["gt"])]
+    command += ["--pred", str(tree["pred"]), "--no-rayiou", "--json", str(json_path)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=240)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.count("protocol: weak") == 1  # rank 0 prints, once
+    data = json.loads(json_path.read_text())
+    assert data["world_size"] == 2 and data["samples"] == 6 and data["complete"]
+    expected = direct(tree)
+    for name in ("occ3d", "weak"):
+        assert data["counts"][name]["confusion"] == expected[name].confusion.tolist()
+        assert data["counts"][name]["geometric"] == expected[name].geometric.tolist()
+        assert data[name]["miou"] == expected[name].compute().miou
