@@ -54,13 +54,13 @@ def _row(args: argparse.Namespace) -> None:
 
     raycast.CPU_KERNEL = "torch" if args.row in ("before", "torch") else "numba"
     if args.row == "before":  # one cast per grid, as before the shared traversal
-        shared = rayiou._cast_product
+        shared = rayiou.cast_product
 
         def separately(labels, *rest, **kwargs):
             parts = [shared([grid], *rest, **kwargs) for grid in labels]
             return tuple(torch.cat([p[i] for p in parts]) for i in range(2))
 
-        rayiou._cast_product = separately
+        rayiou.cast_product = separately
     root = Path(args.data)
     infos = root / f"infos_{args.limit}.pkl" if args.limit else root / "nuscenes_infos_val.pkl"
     kwargs = {"gt": root / "gt", "pred": root / "pred", "workers": args.workers}

@@ -329,3 +329,20 @@ def test_only_dego_classes_are_allowlisted() -> None:
     ours = [entry for entry in allowed if getattr(entry, "__module__", "").startswith("dego")]
     assert set(ours) == set(_safe_globals.safe_types())
     assert all(isinstance(entry, type) and dataclasses.is_dataclass(entry) for entry in ours)
+
+
+def test_checkpoints_naming_classes_where_they_lived_before_a_split_still_load() -> None:
+    """Deformation results moved to dego.deformation_results; old files name dego.deformation."""
+    from dego import DeformationLossWeights
+
+    weights = DeformationLossWeights(reg=0.5)
+    moved = DeformationLossWeights.__module__
+    DeformationLossWeights.__module__ = "dego.deformation"  # as saved before the split
+    try:
+        buffer = io.BytesIO()
+        torch.save(weights, buffer)
+    finally:
+        DeformationLossWeights.__module__ = moved
+    assert b"deformation_results" not in buffer.getvalue()
+    buffer.seek(0)
+    assert torch.load(buffer, weights_only=True) == weights

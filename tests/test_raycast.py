@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from dego import _march_numba, raycast
 from dego.grid import VoxelGrid
-from dego.raycast import MAX_STEPS, _cast_product, cast_rays, generate_lidar_rays, observed_voxels
+from dego.raycast import MAX_STEPS, cast_product, cast_rays, generate_lidar_rays, observed_voxels
 from tests.reference.ray import (
     REFERENCE_MAX_STEPS,
     cast_all,
@@ -460,7 +460,7 @@ def test_one_traversal_through_several_grids_equals_separate_casts(problem, seed
     other = np.where(rng.random(shape) < 0.3, rng.integers(0, 17, shape), labels)
     grids = [torch.from_numpy(labels), torch.from_numpy(other), torch.from_numpy(labels)]
     o, d = torch.from_numpy(origins), torch.from_numpy(directions)
-    distance, label = _cast_product(grids, o, d, grid, FREE, "test")
+    distance, label = cast_product(grids, o, d, grid, FREE, "test")
     for i, labels_i in enumerate(grids):
         alone_distance, alone_label = cast_rays(labels_i, o, d, grid)
         assert torch.equal(label[i], alone_label)

@@ -6,6 +6,8 @@ listing the classes creates no import circle: only ``dego/__init__`` imports thi
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 from dego.deformation import DeformationDeltas, DeformationLossWeights, DeformationOutput
@@ -16,6 +18,12 @@ from dego.splatting.projection import Projection
 from dego.splatting.splatter import SplatOutput
 from dego.teacher.factorized import TeacherOutput
 from dego.voxelizer import VoxelOutput
+
+_FORMER_NAMES = {
+    f"dego.deformation.{cls.__name__}": cls
+    for cls in (DeformationDeltas, DeformationLossWeights, DeformationOutput)
+}
+"""Where checkpoints saved before a module split name a class (they still load)."""
 
 
 def safe_types() -> tuple[type, ...]:
@@ -43,6 +51,8 @@ def register_safe_globals() -> bool:
     if add is None:
         return False
     add(list(safe_types()))
+    with contextlib.suppress(TypeError, AttributeError):  # (class, name) pairs: torch >= 2.5
+        add([(cls, name) for name, cls in _FORMER_NAMES.items()])
     return True
 
 

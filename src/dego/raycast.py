@@ -372,18 +372,18 @@ def _kernel_labels(labels: Sequence[Tensor]) -> np.ndarray:
     return np.ascontiguousarray(stacked.numpy())
 
 
-def _cast_bytes(num_rays: int, grid: VoxelGrid, out_bytes_per_ray: int) -> int:
+def cast_bytes(num_rays: int, grid: VoxelGrid, out_bytes_per_ray: int) -> int:
     """Estimated peak bytes of casting ``num_rays`` rays through ``grid``."""
     x, y, z = grid.shape
     padded = (x + 2) * (y + 2) * (z + 2) * (8 + 1 + 1)  # labels, in-grid mask, visited
     return num_rays * out_bytes_per_ray + min(num_rays, CHUNK_RAYS) * WORK_BYTES_PER_RAY + padded
 
 
-def _cast_sizes(num_rays: int, grid: VoxelGrid) -> str:
+def cast_sizes(num_rays: int, grid: VoxelGrid) -> str:
     return f"{num_rays} rays through a {grid.shape[0]} x {grid.shape[1]} x {grid.shape[2]} grid"
 
 
-@torch._dynamo.disable(recursive=True)  # see _cast_product
+@torch._dynamo.disable(recursive=True)  # see cast_product
 def _traverse(
     labels: Sequence[Tensor],  # G grids (X, Y, Z), any integer dtype, traversed together
     num_rays: int,
@@ -441,7 +441,7 @@ def _product_chunks(origins: Tensor, directions: Tensor) -> Iterator[tuple[Tenso
 # Data-dependent by nature (rays retire as they hit): run eagerly under torch.compile, as
 # one graph break, rather than letting dynamo split it at every compaction.
 @torch._dynamo.disable(recursive=True)
-def _cast_product(
+def cast_product(
     labels: Sequence[Tensor],
     origins: Tensor,
     directions: Tensor,
@@ -458,7 +458,7 @@ def _cast_product(
     _check_rays(origins, directions)
     n = origins.shape[0] * directions.shape[0]
     out_bytes = ((4 if sparseocc else 8) + 8) * len(labels) + extra_bytes_per_ray
-    check_memory(what, _cast_bytes(n, grid, out_bytes), _cast_sizes(n, grid))
+    check_memory(what, cast_bytes(n, grid, out_bytes), cast_sizes(n, grid))
     device = labels[0].device
     origins, directions = origins.to(device), directions.to(device)
     chunks = _product_chunks(origins, directions)
@@ -506,7 +506,7 @@ def cast_rays(
             :func:`dego.set_memory_limit`'s limit (checked before allocating).
     """
     labels = _label_grid("labels", labels, grid)
-    distance, hit = _cast_product([labels], origins, directions, grid, free_label, "cast_rays")
+    distance, hit = cast_product([labels], origins, directions, grid, free_label, "cast_rays")
     return distance[0], hit[0]
 
 
@@ -541,7 +541,7 @@ def observed_voxels(
     _, sparseocc = _ray_mode(origins, directions)
     _check_rays(origins, directions)
     n = origins.shape[0]
-    check_memory("observed_voxels", _cast_bytes(n, grid, 12), _cast_sizes(n, grid))
+    check_memory("observed_voxels", cast_bytes(n, grid, 12), cast_sizes(n, grid))
     device = labels.device
     x, y, z = grid.shape
     visited = torch.zeros((x + 2) * (y + 2) * (z + 2), dtype=torch.bool, device=device)

@@ -441,10 +441,10 @@ def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
 def study_figure(runs: Sequence[StudyRun]) -> Any:
     """Articulated-agent IoU at t != 0 per variant and budget, and each variant's paired
     gain over ``static``, with 95% intervals: a matplotlib Figure (needs matplotlib)."""
-    from dego.viz import _new_figure
+    from dego.viz import new_figure
 
     summary = summarise(runs)
-    figure = _new_figure((10.0, 3.6))
+    figure = new_figure((10.0, 3.6))
     left, right = figure.subplots(1, 2)
     budgets = list(summary)
     variants = [v for v in STUDY_VARIANTS if any(r.variant == v for r in runs)]

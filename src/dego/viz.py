@@ -64,7 +64,7 @@ def _require_matplotlib() -> None:
         raise ImportError(_INSTALL_HINT, name="matplotlib") from error
 
 
-def _new_figure(figsize: tuple[float, float]) -> Figure:
+def new_figure(figsize: tuple[float, float]) -> Figure:
     """A constrained-layout Figure on its own Agg canvas (no pyplot, no window)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure as MplFigure
@@ -338,7 +338,7 @@ def plot_bev(
     rgb = colorize_labels(bev, free_label=free_label, free_color=free_color).numpy()
     image = np.ascontiguousarray(rgb[::-1, ::-1])  # row 0 = highest x, column 0 = highest y
     if ax is None:
-        ax = _new_figure((5.0, 5.0)).add_subplot()
+        ax = new_figure((5.0, 5.0)).add_subplot()
     ax.imshow(image, extent=(y_hi, y_lo, x_lo, x_hi), origin="upper", interpolation="nearest")
     ax.set_xlabel(f"y [{unit}] (left)")
     ax.set_ylabel(f"x [{unit}] (forward)")
@@ -395,7 +395,7 @@ def plot_occupancy_3d(
     shape = tuple(index.shape)
     bounds, unit = _extents(grid, shape)
     if ax is None:
-        ax = _new_figure((6.0, 5.0)).add_subplot(projection="3d")
+        ax = new_figure((6.0, 5.0)).add_subplot(projection="3d")
     elif getattr(ax, "name", None) != "3d":
         raise ValueError("ax: expected a 3D axes, e.g. fig.add_subplot(projection='3d')")
     # an mpl_toolkits.mplot3d Axes3D, which matplotlib ships without type information
@@ -491,7 +491,7 @@ def compare_bev(
         maps.append(bev_labels(index, free_label=free_label) if index.ndim == 3 else index)
     # Room for the legend's rows (up to 6 names per row) below the square panels.
     rows = math.ceil(len(_present_classes(torch.cat([m.flatten() for m in maps]), free_label)) / 6)
-    fig = _new_figure((10.0, 5.0 + (0.25 + 0.3 * rows if legend and rows else 0.0)))
+    fig = new_figure((10.0, 5.0 + (0.25 + 0.3 * rows if legend and rows else 0.0)))
     axes = fig.subplots(1, 2, sharex=True, sharey=True)
     for ax, bev, title in zip(axes, maps, titles, strict=True):
         plot_bev(bev, grid=grid, ax=ax, title=title, free_label=free_label)
@@ -567,7 +567,7 @@ def camera_panels(
     aspect = max(v.shape[-2] / max(v.shape[-1], 1) for _, v in rows)
     height = panel_width * aspect * len(rows) + (0.6 if semantics is not None and legend else 0)
     width = panel_width * num_cameras + (0.9 if depth is not None else 0)
-    fig = _new_figure((width, height + 0.4))
+    fig = new_figure((width, height + 0.4))
     axes = fig.subplots(len(rows), num_cameras, squeeze=False)
     for row, (kind, data) in enumerate(rows):
         if kind == "image":

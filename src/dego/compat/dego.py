@@ -18,7 +18,7 @@ from torch import Tensor
 
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
-from dego.compat.gsplat import _DEPTH_MODES, RenderMode, _release_options
+from dego.compat.gsplat import DEPTH_MODES, RenderMode, options_of_release
 from dego.gaussians import GaussianSet
 from dego.splatting import pipeline
 from dego.splatting.types import ImageSize, SplatConfig
@@ -89,8 +89,8 @@ def render_temporal(
                 f"{name}: expected (B, T, V) = ({b}, {t}, {v}) leading axes to match "
                 f"gaussians and world_to_cam, got {tuple(cameras.shape[:3])}"
             )
-    if mode not in _DEPTH_MODES:
-        raise ValueError(f"mode: expected one of {list(_DEPTH_MODES)}, got {mode!r}")
+    if mode not in DEPTH_MODES:
+        raise ValueError(f"mode: expected one of {list(DEPTH_MODES)}, got {mode!r}")
     with_features = mode.startswith("RGB")
     if features is None and with_features:
         features = gaussians.features
@@ -117,8 +117,8 @@ def render_temporal(
         near=near_plane,
         far=far_plane,
         eps2d=eps2d,
-        depth_mode=_DEPTH_MODES[mode],  # type: ignore[arg-type]
-        **_release_options(gsplat_version),
+        depth_mode=DEPTH_MODES[mode],  # type: ignore[arg-type]
+        **options_of_release(gsplat_version),
     )
     image = pipeline.render(
         flat,

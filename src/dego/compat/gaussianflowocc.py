@@ -24,8 +24,8 @@ from dego.deformation import (
     DeformationDeltas,
     DeformationLossWeights,
     DeformationOutput,
-    _canonical_batch,
-    _check_like_gaussians,
+    canonical_batch,
+    check_like_gaussians,
 )
 from dego.gaussians import GaussianSet
 
@@ -155,13 +155,13 @@ class TemporalOffsetNetwork(nn.Module):
             (``deltas.means`` and both raw offsets are the offsets; the other deltas are 0).
             Append the canonical frame with :meth:`DeformationOutput.with_canonical`.
         """
-        b, n = _canonical_batch(gaussians)
+        b, n = canonical_batch(gaussians)
         if tuple(features.shape) != (b, n, self.feature_dim):
             raise ValueError(
                 f"features: expected shape ({b}, {n}, {self.feature_dim}), got "
                 f"{tuple(features.shape)}"
             )
-        _check_like_gaussians(gaussians, cast(nn.Linear, self.ffn[0]).weight, features)
+        check_like_gaussians(gaussians, cast(nn.Linear, self.ffn[0]).weight, features)
         if time_indices.device != gaussians.device:
             raise ValueError(
                 f"time_indices: expected on {gaussians.device} like gaussians, got "

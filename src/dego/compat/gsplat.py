@@ -25,8 +25,8 @@ from dego.splatting.projection import Projection
 from dego.splatting.types import SplatConfig
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
-_DEPTH_MODES = {"RGB": "none", "D": "accumulated", "ED": "expected"}
-_DEPTH_MODES |= {"RGB+D": "accumulated", "RGB+ED": "expected"}
+DEPTH_MODES = {"RGB": "none", "D": "accumulated", "ED": "expected"}
+DEPTH_MODES |= {"RGB+D": "accumulated", "RGB+ED": "expected"}
 
 # gsplat options dego does not implement: their no-op value and what to do instead.
 _UNSUPPORTED: dict[str, tuple[Any, str]] = {
@@ -75,7 +75,7 @@ def _release(gsplat_version: str) -> tuple[int, int]:
     return major, minor
 
 
-def _release_options(gsplat_version: str) -> dict[str, Any]:
+def options_of_release(gsplat_version: str) -> dict[str, Any]:
     """The SplatConfig fields a gsplat release fixes: its radius rule and compositing constants."""
     return gsplat_backend.release_options(_release(gsplat_version))
 
@@ -186,9 +186,9 @@ def rasterization(
     for name, value in (("sh_degree", sh_degree), ("camera_model", camera_model)):
         if not _is_default(name, value):
             raise NotImplementedError(f"{name}={value!r}: {_UNSUPPORTED[name][1]}")
-    if render_mode not in _DEPTH_MODES:
-        raise ValueError(f"render_mode: expected one of {list(_DEPTH_MODES)}, got {render_mode!r}")
-    release_options = _release_options(gsplat_version)
+    if render_mode not in DEPTH_MODES:
+        raise ValueError(f"render_mode: expected one of {list(DEPTH_MODES)}, got {render_mode!r}")
+    release_options = options_of_release(gsplat_version)
     radius_rule = release_options["radius_rule"]
     try:
         width, height = operator.index(width), operator.index(height)
@@ -231,7 +231,7 @@ def rasterization(
         scales=scales.reshape(flat, n, 3),
         opacities=opacities.reshape(flat, n),
     )
-    depth_mode = _DEPTH_MODES[render_mode]
+    depth_mode = DEPTH_MODES[render_mode]
     with_colors = render_mode.startswith("RGB")
     features = None
     if with_colors:

@@ -45,8 +45,8 @@ from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.grid import VoxelGrid
 from dego.metrics.counts import DIGEST_BYTES as _DIGEST_BYTES
 from dego.metrics.counts import config_digest
-from dego.metrics.occupancy import OMITTED, _OccupancySpec, _Omitted
-from dego.metrics.rayiou import DEFAULT_THRESHOLDS, RayIoUReport, _RayIoUSpec
+from dego.metrics.occupancy import OMITTED, OccupancySpec, Omitted
+from dego.metrics.rayiou import DEFAULT_THRESHOLDS, RayIoUReport, RayIoUSpec
 from dego.metrics.report import OccupancyReport
 
 _KNOWN_CONFIGS: dict[tuple[int, ...], dict[str, Any]] = {}
@@ -281,7 +281,7 @@ class OccupancyMetric(_DegoCountsMetric):
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
-        spec = _OccupancySpec.make(protocol, num_classes, free_label, ignore_label, groups)
+        spec = OccupancySpec.make(protocol, num_classes, free_label, ignore_label, groups)
         blank = OccupancyReport.from_per_class(  # the keys of a report of this configuration
             [math.nan] * spec.num_classes,
             evaluated_classes=spec.evaluated_classes,
@@ -296,7 +296,7 @@ class OccupancyMetric(_DegoCountsMetric):
         self,
         pred: Tensor | np.ndarray,
         gt: Tensor | np.ndarray,
-        mask: Tensor | np.ndarray | _Omitted | None = OMITTED,
+        mask: Tensor | np.ndarray | Omitted | None = OMITTED,
     ) -> None:
         """Add one batch of label grids ``(X, Y, Z)`` or ``(B, X, Y, Z)``; arguments, checks
         and errors of :meth:`dego.OccupancyMetrics.update` (an error names the argument):
@@ -376,7 +376,7 @@ class RayIoUMetric(_DegoCountsMetric):
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
-        spec = _RayIoUSpec.make(thresholds, num_classes, free_label, class_ids, grid, rays)
+        spec = RayIoUSpec.make(thresholds, num_classes, free_label, class_ids, grid, rays)
         self.register_buffer("rays", spec.rays.clone(), persistent=False)
         blank = RayIoUReport(  # the keys of a report of this configuration
             thresholds=spec.thresholds,

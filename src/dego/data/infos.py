@@ -26,7 +26,12 @@ import numpy as np
 import torch
 
 from dego._typing import typechecked
-from dego.data.keyframes import Keyframe, _numbers, _pose_matrices, _quaternion
+from dego.data.keyframes import (
+    Keyframe,
+    checked_numbers,
+    checked_quaternion,
+    keyframe_pose_matrices,
+)
 from dego.data.safe_pickle import load_pickle
 
 PathLike = str | os.PathLike[str]
@@ -109,24 +114,28 @@ def load_infos(path: PathLike) -> tuple[Keyframe, ...]:
             points = info["lidar_points"]
             if not isinstance(points, Mapping) or "lidar2ego" not in points:
                 raise ValueError(f"{where}: missing key 'lidar_points.lidar2ego'")
-            lidar.append(_numbers(points["lidar2ego"], (4, 4), f"{where}: lidar_points.lidar2ego"))
-            ego.append(_numbers(info["ego2global"], (4, 4), f"{where}: ego2global"))
+            lidar.append(
+                checked_numbers(points["lidar2ego"], (4, 4), f"{where}: lidar_points.lidar2ego")
+            )
+            ego.append(checked_numbers(info["ego2global"], (4, 4), f"{where}: ego2global"))
         else:
             _require(info, _LEGACY_KEYS, where)
             lidar.append(
                 (
-                    _numbers(
+                    checked_numbers(
                         info["lidar2ego_translation"], (3,), f"{where}: lidar2ego_translation"
                     ),
-                    _quaternion(info["lidar2ego_rotation"], f"{where}: lidar2ego_rotation"),
+                    checked_quaternion(info["lidar2ego_rotation"], f"{where}: lidar2ego_rotation"),
                 )
             )
             ego.append(
                 (
-                    _numbers(
+                    checked_numbers(
                         info["ego2global_translation"], (3,), f"{where}: ego2global_translation"
                     ),
-                    _quaternion(info["ego2global_rotation"], f"{where}: ego2global_rotation"),
+                    checked_quaternion(
+                        info["ego2global_rotation"], f"{where}: ego2global_rotation"
+                    ),
                 )
             )
         token = info["token"]
@@ -155,8 +164,12 @@ def load_infos(path: PathLike) -> tuple[Keyframe, ...]:
                     "expected [0, 0, 0, 1]"
                 )
     else:
-        lidar2ego = _pose_matrices(np.stack([t for t, _ in lidar]), np.stack([q for _, q in lidar]))
-        ego2global = _pose_matrices(np.stack([t for t, _ in ego]), np.stack([q for _, q in ego]))
+        lidar2ego = keyframe_pose_matrices(
+            np.stack([t for t, _ in lidar]), np.stack([q for _, q in lidar])
+        )
+        ego2global = keyframe_pose_matrices(
+            np.stack([t for t, _ in ego]), np.stack([q for _, q in ego])
+        )
     return tuple(
         Keyframe(token, scene, stamp, lidar2ego[i].clone(), ego2global[i].clone())
         for i, (token, scene, stamp) in enumerate(zip(tokens, scenes, stamps, strict=True))

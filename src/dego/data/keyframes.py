@@ -66,7 +66,7 @@ def _check_matrix(name: str, value: Any, where: str) -> None:
         raise ValueError(f"{where}: {name}: last row is {rows[3]}, expected [0, 0, 0, 1]")
 
 
-def _numbers(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
+def checked_numbers(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
     """``value`` (list, tuple, numpy array) as a finite float64 array of ``shape``."""
     if isinstance(value, str | bytes | dict) or value is None:
         raise ValueError(f"{where}: expected {_shape_text(shape)} numbers, got {value!r:.80}")
@@ -87,15 +87,15 @@ def _shape_text(shape: tuple[int, ...]) -> str:
     return "x".join(str(s) for s in shape)
 
 
-def _quaternion(value: Any, where: str) -> np.ndarray:
+def checked_quaternion(value: Any, where: str) -> np.ndarray:
     """A wxyz quaternion ``(4,)``; zero or non-finite ones raise ``ValueError``."""
-    quat = _numbers(value, (4,), where)
+    quat = checked_numbers(value, (4,), where)
     if not math.isfinite(norm := float(np.linalg.norm(quat))) or norm < 1e-12:
         raise ValueError(f"{where}: the quaternion {quat.tolist()} has no direction (norm 0)")
     return quat
 
 
-def _pose_matrices(translations: np.ndarray, rotations: np.ndarray) -> Tensor:
+def keyframe_pose_matrices(translations: np.ndarray, rotations: np.ndarray) -> Tensor:
     """``(N, 4, 4)`` float64 poses from ``(N, 3)`` translations and ``(N, 4)`` wxyz quaternions.
 
     The quaternions are normalised first (as pyquaternion's ``rotation_matrix``).

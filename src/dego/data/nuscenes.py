@@ -20,7 +20,12 @@ from typing import Any
 import numpy as np
 
 from dego._typing import typechecked
-from dego.data.keyframes import Keyframe, _numbers, _pose_matrices, _quaternion
+from dego.data.keyframes import (
+    Keyframe,
+    checked_numbers,
+    checked_quaternion,
+    keyframe_pose_matrices,
+)
 
 PathLike = str | os.PathLike[str]
 
@@ -152,8 +157,8 @@ def load_nuscenes_keyframes(root: PathLike, version: str = "v1.0-trainval") -> t
         stamps.append(stamp)
     if not order:
         return ()
-    lidar2ego = _pose_matrices(np.stack(lidar_t), np.stack(lidar_q))
-    ego2global = _pose_matrices(np.stack(ego_t), np.stack(ego_q))
+    lidar2ego = keyframe_pose_matrices(np.stack(lidar_t), np.stack(lidar_q))
+    ego2global = keyframe_pose_matrices(np.stack(ego_t), np.stack(ego_q))
     return tuple(
         Keyframe(token, scene, stamps[i], lidar2ego[i].clone(), ego2global[i].clone())
         for i, (token, scene) in enumerate(order)
@@ -205,6 +210,8 @@ def _get(index: Mapping[str, Mapping[str, Any]], token: Any, table: str) -> Mapp
 def _pose(row: Mapping[str, Any], table: str, token: str) -> tuple[np.ndarray, np.ndarray]:
     """``(3,)`` translation and ``(4,)`` wxyz rotation of an ego_pose / calibrated_sensor row."""
     where = f"{table}.json: {token!r}"
-    translation = _numbers(_field(row, "translation", table, token), (3,), f"{where}: translation")
-    rotation = _quaternion(_field(row, "rotation", table, token), f"{where}: rotation")
+    translation = checked_numbers(
+        _field(row, "translation", table, token), (3,), f"{where}: translation"
+    )
+    rotation = checked_quaternion(_field(row, "rotation", table, token), f"{where}: rotation")
     return translation, rotation

@@ -20,7 +20,7 @@ from dego._atomic import write_bytes
 from dego.classes import FREE_LABEL
 from dego.demo.clip import DemoClip
 from dego.demo.fit import LOSS_TERMS, FitResult, gaussians_at, render
-from dego.viz import _new_figure, colorize_labels, compare_bev
+from dego.viz import colorize_labels, compare_bev, new_figure
 
 CAMERA = 0  # CAM_FRONT
 DPI = 80
@@ -78,7 +78,7 @@ def camera_figure(result: FitResult, clip: DemoClip, camera: int = CAMERA) -> An
     pseudo_depth = clip.depth[index, camera].cpu()
     far = float(pseudo_depth.max().clamp_min(1))
 
-    figure = _new_figure((9.0, 3.6))
+    figure = new_figure((9.0, 3.6))
     axes = figure.subplots(2, 2)
     panels = [
         (pseudo_depth, "pseudo depth", "depth"),
@@ -105,7 +105,7 @@ def camera_figure(result: FitResult, clip: DemoClip, camera: int = CAMERA) -> An
 def loss_figure(results: list[FitResult]) -> Any:
     """Every loss term of every variant against the iteration (log scale)."""
     terms = [term for term in LOSS_TERMS if term != "total"]
-    figure = _new_figure((3.2 * len(terms), 2.8))
+    figure = new_figure((3.2 * len(terms), 2.8))
     axes = figure.subplots(1, len(terms))
     for ax, term in zip(axes, terms, strict=True):
         for result in results:

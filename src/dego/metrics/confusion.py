@@ -133,7 +133,7 @@ def confusion_matrix(
     """
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
         raise ValueError(f"num_classes: expected an int >= 1, got {num_classes!r}")
-    ignore_label = _check_ignore_label(ignore_label, num_classes)
+    ignore_label = check_ignore_label(ignore_label, num_classes)
     pred, gt = as_label_tensor("pred", pred), as_label_tensor("gt", gt)
     if pred.shape != gt.shape:
         raise ValueError(f"pred: shape {tuple(pred.shape)} does not match gt's {tuple(gt.shape)}")
@@ -179,7 +179,7 @@ def confusion_matrix(
     return counts
 
 
-def _check_ignore_label(ignore_label: object, num_classes: int) -> int | None:
+def check_ignore_label(ignore_label: object, num_classes: int) -> int | None:
     """``ignore_label`` as an int outside ``0..num_classes-1`` (or ``None``)."""
     if ignore_label is None:
         return None

@@ -15,8 +15,8 @@ from torch import Tensor
 from dego._typing import typechecked
 from dego.classes import CLASS_GROUPS, FREE_LABEL, NUM_CLASSES, PROTOCOL_CLASSES
 from dego.metrics.confusion import (
-    _check_ignore_label,
     binary_occupancy_confusion,
+    check_ignore_label,
     confusion_matrix,
 )
 from dego.metrics.counts import CountingMetric, class_names
@@ -32,7 +32,7 @@ CAMERA_MASK_PROTOCOLS = ("occ3d", "weak")
 ``mask`` (the camera mask, or ``mask=None`` explicitly to score every voxel)."""
 
 
-class _Omitted(enum.Enum):
+class Omitted(enum.Enum):
     """The default of ``update``'s ``mask``: not passed (``None`` is an explicit choice)."""
 
     MASK = "omitted"
@@ -41,11 +41,11 @@ class _Omitted(enum.Enum):
         return "<omitted>"
 
 
-OMITTED = _Omitted.MASK
+OMITTED = Omitted.MASK
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class _OccupancySpec:
+class OccupancySpec:
     """A validated occupancy configuration and its two steps, shared by
     :class:`OccupancyMetrics` and ``dego.compat.torchmetrics.OccupancyMetric``: counting one
     batch (:meth:`counts`) and summarising pooled counts (:meth:`report`)."""
@@ -66,7 +66,7 @@ class _OccupancySpec:
         free_label: int,
         ignore_label: int | None,
         groups: Mapping[str, Sequence[int]] | None,
-    ) -> _OccupancySpec:
+    ) -> OccupancySpec:
         """Check the arguments of :class:`OccupancyMetrics` (errors name them)."""
         if protocol not in PROTOCOL_CLASSES:
             raise ValueError(
@@ -76,7 +76,7 @@ class _OccupancySpec:
             raise ValueError(f"num_classes: expected an int >= 2, got {num_classes!r}")
         if not 0 <= free_label < num_classes:
             raise ValueError(f"free_label: {free_label} must lie in 0..{num_classes - 1}")
-        ignore_label = _check_ignore_label(ignore_label, num_classes)
+        ignore_label = check_ignore_label(ignore_label, num_classes)
         if protocol != "occ3d" and (num_classes, free_label) != (NUM_CLASSES, FREE_LABEL):
             raise ValueError(
                 f"protocol: {protocol!r} is defined on 18 labels "
@@ -128,7 +128,7 @@ class _OccupancySpec:
         self,
         pred: Tensor | np.ndarray,
         gt: Tensor | np.ndarray,
-        mask: Tensor | np.ndarray | _Omitted | None,
+        mask: Tensor | np.ndarray | Omitted | None,
     ) -> tuple[Tensor, Tensor]:
         """The ``(C, C)`` confusion and ``(2, 2)`` occupied/free counts of one batch, on
         ``gt``'s device (the checks and errors of :meth:`OccupancyMetrics.update`)."""
@@ -222,7 +222,7 @@ class OccupancyMetrics(CountingMetric):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
-        self._spec = _OccupancySpec.make(protocol, num_classes, free_label, ignore_label, groups)
+        self._spec = OccupancySpec.make(protocol, num_classes, free_label, ignore_label, groups)
         for name, shape in self._spec.count_shapes().items():
             self._add_count(name, torch.zeros(shape, dtype=torch.int64, device=device))
 
@@ -245,7 +245,7 @@ class OccupancyMetrics(CountingMetric):
         self,
         pred: Tensor | np.ndarray,
         gt: Tensor | np.ndarray,
-        mask: Tensor | np.ndarray | _Omitted | None = OMITTED,
+        mask: Tensor | np.ndarray | Omitted | None = OMITTED,
     ) -> None:
         """Add one batch of label grids ``(X, Y, Z)`` or ``(B, X, Y, Z)`` to the state.
 

@@ -30,7 +30,7 @@ from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.grid import VoxelGrid
 from dego.metrics.confusion import as_label_tensor, labels_in_range
 from dego.metrics.counts import CountingMetric, class_names
-from dego.raycast import _cast_bytes, _cast_product, _cast_sizes, generate_lidar_rays
+from dego.raycast import cast_bytes, cast_product, cast_sizes, generate_lidar_rays
 
 DEFAULT_THRESHOLDS = (1.0, 2.0, 4.0)
 
@@ -174,7 +174,7 @@ def _nanmean(values: Tensor) -> float:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class _RayIoUSpec:
+class RayIoUSpec:
     """A validated RayIoU configuration and its two steps, shared by :class:`RayIoU` and
     ``dego.compat.torchmetrics.RayIoUMetric``: casting and counting one sample
     (:meth:`counts`) and summarising pooled counts (:meth:`report`)."""
@@ -196,7 +196,7 @@ class _RayIoUSpec:
         class_ids: Sequence[int] | None,
         grid: VoxelGrid | None,
         rays: Tensor | None,
-    ) -> _RayIoUSpec:
+    ) -> RayIoUSpec:
         """Check the arguments of :class:`RayIoU` (errors name them)."""
         thresholds = tuple(float(t) for t in thresholds)
         if not thresholds or any(not math.isfinite(t) or t <= 0 for t in thresholds):
@@ -324,7 +324,7 @@ class _RayIoUSpec:
         rays = self.rays if rays is None else rays
         n, t = origins.shape[0] * rays.shape[0], len(self.thresholds)
         per_ray = 2 * 12 + 48 + 2 * t
-        check_memory("RayIoU.update", _cast_bytes(n, self.grid, per_ray), _cast_sizes(n, self.grid))
+        check_memory("RayIoU.update", cast_bytes(n, self.grid, per_ray), cast_sizes(n, self.grid))
         device = gt.device
         pred = pred.to(device)
         # SparseOcc's convention: float64 origins, float32 rays
@@ -332,7 +332,7 @@ class _RayIoUSpec:
         grid, free = self.grid, self.free_label
         what = "RayIoU.update"
         # one traversal for both grids: they share every ray
-        (gt_distance, pred_distance), (gt_label, pred_label) = _cast_product(
+        (gt_distance, pred_distance), (gt_label, pred_label) = cast_product(
             [gt, pred], origins, rays, grid, free, what
         )
         # Masked counts rather than boolean indexing: no data-dependent shape (compiles).
@@ -401,7 +401,7 @@ class RayIoU(CountingMetric):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
-        self._spec = _RayIoUSpec.make(thresholds, num_classes, free_label, class_ids, grid, rays)
+        self._spec = RayIoUSpec.make(thresholds, num_classes, free_label, class_ids, grid, rays)
         self.register_buffer("rays", self._spec.rays.clone(), persistent=False)
         for name, shape in self._spec.count_shapes().items():
             self._add_count(name, torch.zeros(shape, dtype=torch.int64, device=device))

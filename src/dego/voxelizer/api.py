@@ -13,12 +13,12 @@ from dego._policy import float32_under_autocast
 from dego._typing import typechecked
 from dego.gaussians import GaussianSet
 from dego.grid import VoxelGrid
-from dego.voxelizer.boxes import _voxelize_boxes
-from dego.voxelizer.cube import _voxelize_cube
-from dego.voxelizer.inputs import _flatten_inputs
+from dego.voxelizer.boxes import voxelize_boxes
+from dego.voxelizer.cube import voxelize_cube
+from dego.voxelizer.inputs import flatten_inputs
 from dego.voxelizer.output import VoxelOutput
 from dego.voxelizer.types import (
-    _TINY_WEIGHT,
+    TINY_WEIGHT,
     FeatureWeight,
     Mode,
     Neighborhood,
@@ -48,7 +48,7 @@ def voxelize(
     feature_weight: FeatureWeight | None = None,
     opacity_in_density: bool = True,
     empty_value: float | int = 0.0,
-    empty_threshold: float = _TINY_WEIGHT,
+    empty_threshold: float = TINY_WEIGHT,
 ) -> VoxelOutput:
     """Splat ``(B, N)`` Gaussians into ``grid``: ``g_i(x) = exp(-0.5 d^T P_i d)`` at voxel centres.
 
@@ -122,11 +122,11 @@ def voxelize(
 def _voxelize(
     gaussians: GaussianSet, grid: VoxelGrid, features: Tensor | None, config: VoxelizerConfig
 ) -> VoxelOutput:
-    flat = _flatten_inputs(gaussians, features)
+    flat = flatten_inputs(gaussians, features)
     if config.neighborhood == "cube":
-        out = _voxelize_cube(flat, grid, config)
+        out = voxelize_cube(flat, grid, config)
     else:
-        out = _voxelize_boxes(flat, grid, config)
+        out = voxelize_boxes(flat, grid, config)
     if flat.out_dtype == flat.dtype:
         return out
     return VoxelOutput(

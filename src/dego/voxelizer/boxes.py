@@ -13,14 +13,14 @@ from torch.utils.checkpoint import checkpoint
 
 from dego._geometry import rotation_matrices
 from dego.grid import VoxelGrid
-from dego.voxelizer.inputs import _check_size
-from dego.voxelizer.kernels import _Kernel, _pair_terms
+from dego.voxelizer.inputs import check_size
+from dego.voxelizer.kernels import Kernel, pair_terms
 from dego.voxelizer.output import VoxelOutput
-from dego.voxelizer.records import FlatGaussians, VoxelSums, _requiring_grad
+from dego.voxelizer.records import FlatGaussians, VoxelSums, requiring_grad
 from dego.voxelizer.types import VoxelizerConfig
 
 
-def _grid_float64(grid: VoxelGrid, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+def grid_float64(grid: VoxelGrid, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
     """The grid's lower corner, voxel size and largest index per axis, float64 ``(3,)``."""
     lower = torch.tensor(grid.lower, dtype=torch.float64, device=device)
     size = torch.tensor(grid.voxel_size, dtype=torch.float64, device=device)
@@ -51,7 +51,7 @@ def _ellipsoid_boxes(
     conversion, so huge scales, huge ``cutoff_sigma`` (``inf``: the whole grid) or far
     means never overflow int64.
     """
-    lower, size, top = _grid_float64(grid, means.device)
+    lower, size, top = grid_float64(grid, means.device)
     if math.isinf(cutoff_sigma):
         low = torch.zeros_like(means, dtype=torch.float64)
         high = top.expand_as(low)
@@ -81,7 +81,7 @@ def _scale_cube_boxes(
     Computed in float64 and clamped to ``[-1, shape]`` in floating point before the integer
     conversion (huge scales or ``k = inf``: the whole grid; far means: no voxel).
     """
-    lower, size, top = _grid_float64(grid, means.device)
+    lower, size, top = grid_float64(grid, means.device)
     if math.isinf(scale_multiplier):
         low = torch.zeros_like(means, dtype=torch.float64)
         high = top.expand_as(low)
@@ -93,7 +93,7 @@ def _scale_cube_boxes(
     return _clip_to_grid(low, high, top)
 
 
-def _voxelize_boxes(flat: FlatGaussians, grid: VoxelGrid, config: VoxelizerConfig) -> VoxelOutput:
+def voxelize_boxes(flat: FlatGaussians, grid: VoxelGrid, config: VoxelizerConfig) -> VoxelOutput:
     """The ellipsoid or scale-cube neighbourhood: whitening matrices and index boxes, then
     the pairs of the boxes reduced into the grid."""
     rotations = rotation_matrices(flat.quats)
@@ -124,8 +124,8 @@ def _sum_box_pairs(
     dtype, device = flat.dtype, flat.device
     means, opacities, features = flat.means, flat.opacities, flat.features
     log_normaliser = flat.log_normaliser
-    kernel = _Kernel.of(config)
-    differentiable = _requiring_grad(means, whitening, opacities, features, log_normaliser)
+    kernel = Kernel.of(config)
+    differentiable = requiring_grad(means, whitening, opacities, features, log_normaliser)
     grad_needed = bool(differentiable)
     low, high = boxes
     with torch.no_grad():
@@ -134,7 +134,7 @@ def _sum_box_pairs(
         ends = torch.cumsum(counts, 0)
     total = int(ends[-1]) if ends.numel() else 0
     chunk = min(config.chunk_size, total)
-    _check_size(
+    check_size(
         flat,
         grid,
         chunk,
@@ -159,8 +159,8 @@ def _sum_box_pairs(
             centres = lower + (index.to(dtype) + 0.5) * size
         args = (means, whitening, opacities, features, owner, centres, log_normaliser, kernel)
         if grad_needed:
-            terms = checkpoint(_pair_terms, *args, use_reentrant=False)
+            terms = checkpoint(pair_terms, *args, use_reentrant=False)
         else:
-            terms = _pair_terms(*args)
+            terms = pair_terms(*args)
         sums.add(voxel, terms)
     return sums.finish(kernel, config, shape, differentiable)

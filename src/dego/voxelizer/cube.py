@@ -11,11 +11,11 @@ from torch.utils.checkpoint import checkpoint
 
 from dego._geometry import scaled_rotation_gram
 from dego.grid import VoxelGrid
-from dego.voxelizer.boxes import _grid_float64
-from dego.voxelizer.inputs import _check_size
-from dego.voxelizer.kernels import _NEGLIGIBLE_QUADRATIC, _Kernel, _kernel_terms
+from dego.voxelizer.boxes import grid_float64
+from dego.voxelizer.inputs import check_size
+from dego.voxelizer.kernels import NEGLIGIBLE_QUADRATIC, Kernel, kernel_terms
 from dego.voxelizer.output import VoxelOutput
-from dego.voxelizer.records import FlatGaussians, VoxelSums, _requiring_grad
+from dego.voxelizer.records import FlatGaussians, VoxelSums, requiring_grad
 from dego.voxelizer.types import VoxelizerConfig
 
 
@@ -67,11 +67,11 @@ def _cube_pair_terms(
     axis_centres: tuple[Tensor, Tensor, Tensor],
     r: Tensor,
     reach: tuple[float, float, float],
-    kernel: _Kernel,
+    kernel: Kernel,
 ) -> tuple[Tensor, Tensor, Tensor]:
     quadratic = _cube_quadratics(means, precisions, cell, axis_centres, r, reach)
     quadratic = quadratic.flatten()[flat]
-    return _kernel_terms(
+    return kernel_terms(
         quadratic.to(means.dtype),
         opacities[local],
         features[local],
@@ -80,7 +80,7 @@ def _cube_pair_terms(
     )
 
 
-def _voxelize_cube(flat: FlatGaussians, grid: VoxelGrid, config: VoxelizerConfig) -> VoxelOutput:
+def voxelize_cube(flat: FlatGaussians, grid: VoxelGrid, config: VoxelizerConfig) -> VoxelOutput:
     """The official cube: float64 precisions ``(M, 6)``, then the cube pairs reduced into
     the grid."""
     # float64 from the input-dtype quats and scales: in float32 the rounding of these
@@ -107,14 +107,14 @@ def _sum_cube_pairs(
     dtype, device = flat.dtype, flat.device
     means, opacities, features = flat.means, flat.opacities, flat.features
     log_normaliser = flat.log_normaliser
-    kernel = _Kernel.of(config)
+    kernel = Kernel.of(config)
     probabilistic = kernel.probabilistic
     r = torch.arange(-config.nbh, config.nbh + 1, device=device)
     cube_size = r.shape[0] ** 3
     per_chunk = max(1, config.chunk_size // cube_size)
-    differentiable = _requiring_grad(means, precision6, opacities, features, log_normaliser)
+    differentiable = requiring_grad(means, precision6, opacities, features, log_normaliser)
     grad_needed = bool(differentiable)
-    _check_size(
+    check_size(
         flat,
         grid,
         min(per_chunk, b * n) * cube_size,
@@ -128,7 +128,7 @@ def _sum_cube_pairs(
     offsets_flat = (offsets[:, 0] * y + offsets[:, 1]) * z + offsets[:, 2]
     # float64 centres (the grid's own, lower + (i + 0.5) * voxel, in float64); the home voxel
     # below stays the official float32 floor((mu - lower) / voxel)
-    lower64, size64, _ = _grid_float64(grid, device)
+    lower64, size64, _ = grid_float64(grid, device)
     cx, cy, cz = (
         lower64[a]
         + (torch.arange(grid.shape[a], device=device, dtype=torch.float64) + 0.5) * size64[a]
@@ -165,7 +165,7 @@ def _sum_cube_pairs(
             # In probabilistic mode a tiny kernel can still carry a large normalised mixture
             # weight, so only the additive mode skips negligible pairs (NaN: far, skipped).
             if not probabilistic:
-                keep &= quadratic < _NEGLIGIBLE_QUADRATIC
+                keep &= quadratic < NEGLIGIBLE_QUADRATIC
             kept = keep.flatten().nonzero().squeeze(1)
             local = kept // cube_size
             voxel = cell_flat[start + local] + offsets_flat[kept % cube_size]
@@ -183,7 +183,7 @@ def _sum_cube_pairs(
                 use_reentrant=False,
             )
         else:  # the screening quadratics are the values: no recomputation
-            terms = _kernel_terms(
+            terms = kernel_terms(
                 quadratic.flatten()[kept].to(dtype),
                 opacities[part][local],
                 features[part][local],

@@ -1,8 +1,8 @@
 """The voxelizer's input checks: shapes, dtypes and devices, Gaussian values, memory.
 
-:func:`_flatten_inputs` checks the inputs and flattens them into a
+:func:`flatten_inputs` checks the inputs and flattens them into a
 :class:`~dego.voxelizer.records.FlatGaussians`; :func:`_check_values` holds every value
-check's wording; :func:`_check_size` checks the buffers against dego's memory limit.
+check's wording; :func:`check_size` checks the buffers against dego's memory limit.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from dego._policy import (
 )
 from dego.gaussians import GaussianSet
 from dego.grid import VoxelGrid
-from dego.voxelizer.kernels import _log_normaliser_bound, _scale_floor
+from dego.voxelizer.kernels import log_normaliser_bound, scale_floor
 from dego.voxelizer.records import FlatGaussians
 
 
@@ -41,7 +41,7 @@ def _check_values(fields: dict[str, Tensor]) -> None:
     )
 
 
-def _flatten_inputs(gaussians: GaussianSet, features: Tensor | None) -> FlatGaussians:
+def flatten_inputs(gaussians: GaussianSet, features: Tensor | None) -> FlatGaussians:
     """Check ``(B, N)`` Gaussians and their ``(B, N, C)`` features (default: their own; none:
     C = 0) and flatten them into ``B * N`` rows in the compute dtype."""
     if len(gaussians.batch_shape) != 1:
@@ -71,8 +71,8 @@ def _flatten_inputs(gaussians: GaussianSet, features: Tensor | None) -> FlatGaus
     _check_values(fields)
 
     m = b * n
-    scales = fields["scales"].reshape(m, 3).clamp_min(_scale_floor(dtype))
-    bound = _log_normaliser_bound(dtype)
+    scales = fields["scales"].reshape(m, 3).clamp_min(scale_floor(dtype))
+    bound = log_normaliser_bound(dtype)
     log_normaliser = (-1.5 * math.log(2 * math.pi) - scales.log().sum(-1)).clamp(-bound, bound)
     return FlatGaussians(
         batch_size=b,
@@ -87,7 +87,7 @@ def _flatten_inputs(gaussians: GaussianSet, features: Tensor | None) -> FlatGaus
     )
 
 
-def _check_size(
+def check_size(
     flat: FlatGaussians, grid: VoxelGrid, chunk: int, per_chunk_element: int, retained: int
 ) -> None:
     """:func:`check_memory` on the output grids, one chunk's buffers (``chunk`` elements of

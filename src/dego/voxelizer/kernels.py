@@ -20,23 +20,23 @@ _SATURATED_LOG = -1e4
 # Additive cube mode skips (Gaussian, voxel) pairs with exp(-q/2) < 1e-10, i.e. q > 2 * 23.03;
 # the skipped total per voxel is below (2 nbh + 1)^3 * 1e-10 (1.3e-7 for nbh = 5) times the
 # largest |opacity| or |feature|.
-_NEGLIGIBLE_QUADRATIC = 2 * 23.026
+NEGLIGIBLE_QUADRATIC = 2 * 23.026
 
 
-def _scale_floor(dtype: torch.dtype) -> float:
+def scale_floor(dtype: torch.dtype) -> float:
     """Smallest scale used in the kernel: ``finfo.tiny ** 0.25`` (1.1e-10 m in float32,
     1.2e-77 m in float64), so ``1/s^2`` and its products with offsets stay finite."""
     return torch.finfo(dtype).tiny ** 0.25
 
 
-def _log_normaliser_bound(dtype: torch.dtype) -> float:
+def log_normaliser_bound(dtype: torch.dtype) -> float:
     """``|log|`` bound of the mixture normaliser: ``0.5 log(finfo.max)`` (44.4 in float32,
     354.9 in float64), so probabilistic weights and their sums never overflow."""
     return 0.5 * math.log(torch.finfo(dtype).max)
 
 
 @dataclasses.dataclass(frozen=True)
-class _Kernel:
+class Kernel:
     """Which per-pair terms are summed: the mode and where the opacity enters."""
 
     probabilistic: bool
@@ -44,7 +44,7 @@ class _Kernel:
     opacity_density: bool  # density from o g (else g)
 
     @classmethod
-    def of(cls, config: VoxelizerConfig) -> _Kernel:
+    def of(cls, config: VoxelizerConfig) -> Kernel:
         return cls(
             config.mode == "probabilistic",
             config.opacity_weights_features,
@@ -72,12 +72,12 @@ def _pair_quadratic(
     return u.square().sum(-1)
 
 
-def _kernel_terms(
+def kernel_terms(
     quadratic: Tensor,  # (P,)
     opacity: Tensor,  # (P,) opacity of each pair's Gaussian
     features: Tensor,  # (P, C) features of each pair's Gaussian
     log_normaliser: Tensor,  # (P,) clamped log of (2 pi)^(-3/2) sqrt(det P) of each pair
-    kernel: _Kernel,
+    kernel: Kernel,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per-pair density term, feature term and feature weight (additive: ``g`` or ``o g``;
     probabilistic: the mixture weight ``N`` or ``o N``)."""
@@ -98,7 +98,7 @@ def _kernel_terms(
     return survival, weight.unsqueeze(-1) * features, weight
 
 
-def _pair_terms(
+def pair_terms(
     means: Tensor,
     whitening: Tensor,
     opacities: Tensor,  # (M,)
@@ -106,10 +106,8 @@ def _pair_terms(
     owner: Tensor,
     centres: Tensor,
     log_normaliser: Tensor,  # (M,)
-    kernel: _Kernel,
+    kernel: Kernel,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`_kernel_terms` of the (Gaussian ``owner``, voxel centre) pairs."""
+    """:func:`kernel_terms` of the (Gaussian ``owner``, voxel centre) pairs."""
     quadratic = _pair_quadratic(means, whitening, owner, centres)
-    return _kernel_terms(
-        quadratic, opacities[owner], features[owner], log_normaliser[owner], kernel
-    )
+    return kernel_terms(quadratic, opacities[owner], features[owner], log_normaliser[owner], kernel)

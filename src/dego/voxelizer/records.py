@@ -13,7 +13,7 @@ import dataclasses
 import torch
 from torch import Tensor
 
-from dego.voxelizer.kernels import _Kernel
+from dego.voxelizer.kernels import Kernel
 from dego.voxelizer.output import VoxelOutput
 from dego.voxelizer.types import VoxelizerConfig
 
@@ -51,7 +51,7 @@ class FlatGaussians:
         return self.features.shape[-1]
 
 
-def _requiring_grad(*inputs: Tensor) -> tuple[Tensor, ...]:
+def requiring_grad(*inputs: Tensor) -> tuple[Tensor, ...]:
     """The inputs that require grad, none when grad mode is off."""
     if not torch.is_grad_enabled():
         return ()
@@ -86,7 +86,7 @@ class VoxelSums:
 
     def finish(
         self,
-        kernel: _Kernel,
+        kernel: Kernel,
         config: VoxelizerConfig,
         shape: tuple[int, ...],
         differentiable: tuple[Tensor, ...],  # the inputs requiring grad (empty: no link)

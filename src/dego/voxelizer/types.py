@@ -16,7 +16,7 @@ Mode = Literal["additive", "probabilistic"]
 Neighborhood = Literal["ellipsoid", "cube", "scale_cube"]
 FeatureWeight = Literal["kernel", "opacity_kernel"]
 
-_TINY_WEIGHT = 1e-30  # default empty_threshold
+TINY_WEIGHT = 1e-30  # default empty_threshold
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,7 +33,7 @@ class VoxelizerConfig:
     feature_weight: FeatureWeight | None = None
     opacity_in_density: bool = True
     empty_value: float | int = 0.0
-    empty_threshold: float = _TINY_WEIGHT
+    empty_threshold: float = TINY_WEIGHT
 
     def __post_init__(self) -> None:
         if self.mode not in ("additive", "probabilistic"):
