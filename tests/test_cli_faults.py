@@ -35,15 +35,16 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
-    """The error line of an argparse usage error (rc 2) of ``dego argv``."""
+    """The error line of an argparse usage error (rc 2) of ``dego argv``: the usage line
+    and the error come from the subcommand's parser (``dego demo: error: ...``)."""
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2
     out, err = capsys.readouterr()
     assert out == "" and "Traceback" not in err
     lines = err.strip().splitlines()
-    assert lines[0].startswith("usage: dego")
-    assert ": error: " in lines[-1]
+    assert lines[0].startswith(f"usage: dego {argv[0]} ")
+    assert lines[-1].startswith(f"dego {argv[0]}: error: ")
     return lines[-1]
 
 
@@ -89,6 +90,8 @@ def test_bad_demo_flags_are_usage_errors_before_any_work(
         (["--iterations", str(10**9)], "--iterations", ""),
         (["--budgets", str(10**9)], "--budgets", ""),
         (["--mask-prior", "inf"], "--mask-prior", ""),
+        (["--device", "meta"], "--device", "meta"),
+        (["--device", "cuda:99"], "--device", ""),
     ],
 )
 def test_bad_study_flags_are_usage_errors_before_any_work(
@@ -139,7 +142,7 @@ def test_bad_eval_flags_are_usage_errors(
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA exists here")
-@pytest.mark.parametrize("command", ["demo", "eval"])
+@pytest.mark.parametrize("command", ["demo", "study", "eval"])
 def test_cuda_without_cuda_is_a_usage_error(
     command: str, no_work: None, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -42,3 +42,51 @@ def test_benchmark_script_runs_on_a_small_case(
     )
     assert result.returncode == 0, result.stderr
     assert "speed-up" in result.stdout
+
+
+# -- the README and the repository's small promises -----------------------------------------
+
+CPU_INDEX = "--index-url https://download.pytorch.org/whl/cpu"
+
+
+def test_readme_installs_the_cpu_torch_build_on_every_path(source_tree: Path) -> None:
+    import re
+
+    text = (source_tree / "README.md").read_text()
+    blocks = re.findall(r"```(?:bash|text)\n(.*?)```", text, flags=re.DOTALL)
+    installs = [
+        command.strip()
+        for block in blocks
+        for line in block.splitlines()
+        if not line.startswith("#")
+        for command in line.split("&&")
+        if re.match(r"python -m pip install torch\b", command.strip())
+    ]
+    assert len(installs) == 3  # the package-index path and both clone commands
+    assert all(command.endswith(CPU_INDEX) for command in installs), installs
+
+
+def test_readme_states_how_long_the_tests_take(source_tree: Path) -> None:
+    text = " ".join((source_tree / "README.md").read_text().split())
+    assert "The tests (`python -m pytest -q`" in text
+    assert "3.5-5 minutes on the 2-core CPU development machine" in text
+
+
+def test_built_wheels_are_ignored(source_tree: Path) -> None:
+    patterns = (source_tree / ".gitignore").read_text().splitlines()
+    assert "*.whl" in patterns  # `pip wheel .` writes one into the repository root
+
+
+def test_docstrings_cite_only_documents_the_package_has(source_tree: Path) -> None:
+    import re
+
+    for path in sorted((source_tree / "src" / "dego").rglob("*.py")):
+        for cited in re.findall(r"\b((?:docs|reference)/[\w/.-]+\.md)\b", path.read_text()):
+            assert (source_tree / cited).is_file(), (path.name, cited)
+
+
+def test_docs_index_does_not_deny_the_gpu_numbers(source_tree: Path) -> None:
+    index = " ".join((source_tree / "docs" / "index.md").read_text().split())
+    performance = (source_tree / "docs" / "performance.md").read_text()
+    assert "H200" in performance
+    assert "no GPU measurement" not in index and "H200" in index

@@ -49,6 +49,66 @@ def test_roc_auc_matches_brute_force_and_is_antisymmetric(a: list[int], b: list[
     assert roc_auc(positive, negative) + roc_auc(negative, positive) == pytest.approx(1.0)
 
 
+def test_intervals_from_fewer_than_three_seeds_are_flagged_not_printed() -> None:
+    from dego.study import MIN_INTERVAL_SEEDS
+
+    assert MIN_INTERVAL_SEEDS == 3
+    two = mean_interval([0.4, 1.0])  # an AUC-like quantity: the t-interval leaves [0, 1]
+    assert two.n == 2 and two.low < 0 and two.high > 1  # the JSON keeps it as it is
+    assert str(two) == "0.70 [n/a (2 seeds)]"
+    far = mean_interval([5.0, 5.1])  # excludes 0, but 2 seeds resolve no sign
+    assert far.low > 0 and not far.excludes_zero()
+    assert mean_interval([5.0, 5.1, 4.9]).excludes_zero()
+
+
+@pytest.mark.parametrize("seeds", [(0, 1), (0, 1, 2)])
+def test_report_flags_too_few_seeds(seeds: tuple[int, ...]) -> None:
+    from dego.study import MASK_METRICS, study_report
+
+    runs = [
+        StudyRun(
+            seed,
+            10,
+            variant,
+            dict.fromkeys(METRICS, 1.0) | {"articulated t!=0": value + seed},
+            dict.fromkeys(MASK_METRICS, 0.5 + 0.1 * seed),
+            3.0,
+            1.0,
+        )
+        for seed in seeds
+        for variant, value in (("static", 5.0), ("decoupled", 9.0))
+    ]
+    text, payload = study_report(runs, StudyConfig(seeds=seeds, budgets=(10,)))
+    flagged = len(seeds) < 3
+    assert ("no interval is given (`n/a`)" in text) == flagged
+    assert ("[n/a (2 seeds)]" in text) == flagged
+    assert ("2 seeds only: no interval" in text) == flagged
+    assert (" *" in text) != flagged  # a resolved sign needs 3 seeds
+    interval = payload["paired"]["decoupled - static @ 10: articulated t!=0"]
+    assert interval["n"] == len(seeds) and interval["low"] == pytest.approx(4.0)
+
+
+def test_study_help_gives_the_device_and_the_duration_the_docs_give(source_tree: Path) -> None:
+    from dego.cli import STUDY_DURATION, build_parser
+
+    parser = build_parser()
+    study = parser._subparsers._group_actions[0].choices["study"]  # type: ignore[union-attr]
+    text = " ".join(study.format_help().split())
+    assert "--device" in text and STUDY_DURATION in text
+    page = " ".join((source_tree / "docs" / "study.md").read_text().split())
+    assert STUDY_DURATION in page and "--device" in page
+    assert parser.parse_args(["study", "--device", "cpu"]).device == "cpu"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_study_runs_on_cuda(tmp_path: Path) -> None:
+    argv = ["study", "--device", "cuda", "--seeds", "0", "--budgets", "300", "--frames", "2"]
+    argv += ["--iterations", "3", "--variants", "static,decoupled", "--no-pictures"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    payload = json.loads((tmp_path / "study.json").read_text())
+    assert {r["variant"] for r in payload["runs"]} == {"static", "decoupled"}
+
+
 def test_mean_interval_known_values() -> None:
     interval = mean_interval([1.0, 2.0, 3.0])
     half = 4.303 / math.sqrt(3)  # t(0.975, 2 dof) * sd 1 / sqrt(3)
@@ -140,7 +200,7 @@ def test_bad_study_arguments_exit_with_a_message(
 def quick_study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("study")
     result = subprocess.run(
-        [sys.executable, "-m", "dego", "study", "--quick", "--out", str(out)],
+        [sys.executable, "-m", "dego", "study", "--quick", "--device", "cpu", "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=600,

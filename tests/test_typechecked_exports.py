@@ -49,6 +49,7 @@ MODULES = (
     "dego.encoding",
     "dego.cameras",
     "dego.gaussians",
+    "dego.spherical_harmonics",
     "dego.deformation",
     *(f"dego.compat.{m.name}" for m in pkgutil.iter_modules(dego.compat.__path__)),
 )

@@ -62,6 +62,7 @@ from dego.metrics import (
     per_class_iou,
 )
 from dego.raycast import cast_rays, generate_lidar_rays, observed_voxels
+from dego.spherical_harmonics import spherical_harmonics
 from dego.splatting import DifferentiableSplatter, SplatOutput, splat
 from dego.teacher import (
     FactorizedSpatioTemporalTeacher,
@@ -143,6 +144,7 @@ __all__ = [
     "rotation_matrices_to_quaternions",
     "save_occ3d_labels",
     "set_memory_limit",
+    "spherical_harmonics",
     "splat",
     "split_projection",
     "voxelize",

@@ -84,6 +84,16 @@ DURATIONS = {
 """How long each :data:`BUDGETS` entry takes, as ``--help`` and docs/demo.md say it (the
 tests check that they agree); measured on docs/performance.md's "The demo"."""
 
+STUDY_DURATION = (
+    "with the defaults, about 5-16 minutes per seed (2 budgets x 6 fits) on 2 CPU cores: "
+    "55 min 14 s for seeds 0-9 on one thread beside another job, 16 min for seed 0 beside "
+    "a test run; the time grows with the seeds, budgets, variants, frames and iterations, "
+    "and --quick takes about a minute on idle cores"
+)
+"""How long ``dego study`` takes, as its ``--help`` and docs/study.md say it (the tests check
+that they agree). The 55 minutes are docs/performance.md's "The study"; the 16 minutes were
+timed for this text (``dego study --seeds 0``, 961 s, 1.26 GB peak, beside a test run)."""
+
 
 MAX_ITERATIONS = 100_000
 """The most optimiser steps ``--iterations`` takes (the full demo takes 150; 100,000 steps
@@ -170,8 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument(
         "--frames",
-        type=eval_command.bounded_int(1, MAX_DEMO_FRAMES),
-        help=f"frames of the clip, 1-{MAX_DEMO_FRAMES} ({full['frames']}; quick {quick['frames']})",
+        type=_demo_frames,
+        help=f"frames of the clip, 2-{MAX_DEMO_FRAMES} ({full['frames']}; quick {quick['frames']})",
     )
     demo.add_argument(
         "--iterations",
@@ -185,12 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"canonical Gaussians, at most one per camera pixel of the clip "
         f"({full['gaussians']}; quick {quick['gaussians']})",
     )
-    demo.add_argument(
-        "--device",
-        type=eval_command.parse_device,
-        default="cpu",
-        help="torch device: cpu, cuda or cuda:N (cpu)",
-    )
+    _add_device(demo)
     demo.add_argument(
         "--out", type=Path, default=Path("dego-demo"), help="output folder (./dego-demo)"
     )
@@ -202,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
         "study",
         help="when does decoupling pay off? variants x seeds x Gaussian budgets, with CIs",
         description=STUDY_DESCRIPTION,
+        epilog=f"How long: {STUDY_DURATION}.",
     )
     study.add_argument(
         "--quick",
@@ -239,6 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help=f"weight of the mask sparsity prior of decoupled+prior ({default.mask_prior})",
     )
+    _add_device(study)
     study.add_argument(
         "--out", type=Path, default=Path("dego-study"), help="output folder (./dego-study)"
     )
@@ -253,6 +260,30 @@ def build_parser() -> argparse.ArgumentParser:
     eval_command.add_arguments(evaluation)
     evaluation.set_defaults(command_parser=evaluation)
     return parser
+
+
+def _add_device(parser: argparse.ArgumentParser) -> None:
+    """The ``--device`` flag of ``dego demo`` and ``dego study``: checked while parsing, so
+    a device that is not usable here is the subcommand's usage error."""
+    parser.add_argument(
+        "--device",
+        type=eval_command.parse_device,
+        default="cpu",
+        help="torch device: cpu, cuda or cuda:N (cpu)",
+    )
+
+
+def _demo_frames(text: str) -> int:
+    """``dego demo --frames``: an int in ``[2, MAX_DEMO_FRAMES]``. One frame is refused
+    with its reason: the demo scores the deformation at the frames other than the
+    reference frame, and a one-frame clip has none (its ``t!=0`` columns and the gains
+    on them would be undefined)."""
+    if eval_command.parse_int(text) == 1:
+        raise argparse.ArgumentTypeError(
+            "expected at least 2: the demo scores the deformation at the frames other than "
+            "the reference frame (the t!=0 columns), and a 1-frame clip has none"
+        )
+    return eval_command.bounded_int(2, MAX_DEMO_FRAMES)(text)
 
 
 def _seed(text: str) -> int:
@@ -334,7 +365,7 @@ def study_main(
     print(
         f"dego {__version__} study: {runs} fits (seeds {_format_ints(config.seeds)}, budgets "
         f"{_format_ints(config.budgets)}, variants {', '.join(config.variants)}), "
-        f"{config.frames} frames, {config.iterations} iterations each"
+        f"{config.frames} frames, {config.iterations} iterations each, {args.device}"
     )
     start = time.perf_counter()
     done = []
@@ -344,7 +375,7 @@ def study_main(
         print(f"[{len(done)}/{runs} {time.perf_counter() - start:.0f} s] {line}", flush=True)
 
     try:
-        results = run_study(config, progress=progress)
+        results = run_study(config, progress=progress, device=torch.device(args.device))
     except ValueError as error:
         if not str(error).startswith("num_gaussians: "):
             raise

@@ -1,7 +1,7 @@
 """First-hit voxel ray casting (Amanatides-Woo), vectorised over rays, in pure torch.
 
 The rules are those of the DVR kernel behind SparseOcc's RayIoU
-(``reference/metrics-protocol-facts.md`` section 3), so that RayIoU numbers match:
+(docs/rayiou.md, "The rules"), so that RayIoU numbers match:
 
 - positions are taken to voxel units as ``float32((p - lower) / voxel_size)``, computed in
   float64 from the origins as given, float32 directions and the float32 grid bounds and

@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
 from jaxtyping import Float
 from torch import Tensor
 
@@ -178,13 +179,16 @@ def run_study(
     config: StudyConfig,
     *,
     progress: Callable[[str], None] | None = None,
+    device: str | torch.device = "cpu",
 ) -> list[StudyRun]:
-    """Fit and score every (seed, budget, variant) of ``config``. ``lifted-labels`` is
-    not fitted: each frame's pseudo labels lifted to 3D (the same for every budget)."""
+    """Fit and score every (seed, budget, variant) of ``config`` on ``device`` (the clip
+    and the fits live there, as with ``dego demo --device``).
+    ``lifted-labels`` is not fitted: each frame's pseudo labels lifted to 3D (the same
+    for every budget)."""
     runs = []
     for seed in config.seeds:
         scene = SyntheticScene(seed, num_frames=config.frames, frame_dt=DEMO_FRAME_DT)
-        clip = DemoClip.from_scene(scene)
+        clip = DemoClip.from_scene(scene).to(torch.device(device))
         lifted = None
         for budget in config.budgets:
             for variant in config.variants:
@@ -229,6 +233,13 @@ _T975 = (
 )  # fmt: skip
 
 
+MIN_INTERVAL_SEEDS = 3
+"""The fewest values whose interval the report prints. With 2 the t quantile is 12.7 and
+the interval is wider than the range of a bounded quantity (``mask AUC 0.70 [-0.86,
+2.27]``): the report prints ``n/a (2 seeds)`` instead and marks no sign as resolved; the
+JSON keeps the plain t-interval with its ``n``."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Interval:
     """A mean with its 95% Student-t confidence interval over ``n`` values."""
@@ -239,13 +250,17 @@ class Interval:
     n: int
 
     def excludes_zero(self) -> bool:
-        return self.n > 1 and (self.low > 0 or self.high < 0)
+        """Whether the interval resolves the sign: it excludes 0 and rests on at least
+        :data:`MIN_INTERVAL_SEEDS` values."""
+        return self.n >= MIN_INTERVAL_SEEDS and (self.low > 0 or self.high < 0)
 
     def __str__(self) -> str:
         if math.isnan(self.mean):
             return "nan"
         if self.n < 2:
             return f"{self.mean:.2f}"
+        if self.n < MIN_INTERVAL_SEEDS:
+            return f"{self.mean:.2f} [n/a ({self.n} seeds)]"
         return f"{self.mean:.2f} [{self.low:.2f}, {self.high:.2f}]"
 
 
@@ -327,6 +342,14 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
         f"{config.frames} frames, {config.iterations} iterations per fit, mask prior weight "
         f"{config.mask_prior}. Percent, mean [95% t-interval over seeds].",
     ]
+    if len(config.seeds) < MIN_INTERVAL_SEEDS:
+        lines += [
+            "",
+            f"With {len(config.seeds)} seed(s) no interval is given (`n/a`): a 95% t-interval "
+            f"needs at least {MIN_INTERVAL_SEEDS} seeds to say anything (with 2 its half-width is "
+            "12.7 standard errors, past the range of a bounded quantity such as the mask AUC); "
+            "the means are single draws, not comparisons.",
+        ]
     payload: dict = {
         "settings": dataclasses.asdict(config),
         "runs": [dataclasses.asdict(r) for r in runs],
@@ -396,6 +419,8 @@ def _reading(runs: Sequence[StudyRun], summary: dict) -> list[str]:
         for budget, interval in paired_differences(runs, metric, first, second).items():
             if interval.n < 2:
                 verdict = "one seed only: no interval"
+            elif interval.n < MIN_INTERVAL_SEEDS:
+                verdict = f"{interval.n} seeds only: no interval (at least {MIN_INTERVAL_SEEDS})"
             elif interval.excludes_zero():
                 better = "better" if interval.mean > 0 else "worse"
                 verdict = f"the interval excludes 0: {first} is {better} than {second} here"
@@ -454,9 +479,10 @@ def study_figure(runs: Sequence[StudyRun]) -> Any:
         for k, variant in enumerate(names):
             intervals = [intervals_of(b, variant) for b in budgets]
             xs = [i + (k - (len(names) - 1) / 2) * width for i in range(len(budgets))]
+            shown = [iv.n >= MIN_INTERVAL_SEEDS for iv in intervals]  # as the report
             errors = [
-                [iv.mean - iv.low if iv.n > 1 else 0 for iv in intervals],
-                [iv.high - iv.mean if iv.n > 1 else 0 for iv in intervals],
+                [iv.mean - iv.low if ok else 0 for iv, ok in zip(intervals, shown, strict=True)],
+                [iv.high - iv.mean if ok else 0 for iv, ok in zip(intervals, shown, strict=True)],
             ]
             axis.bar(
                 xs,

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import Tensor
 
-from dego import GaussianSet, splat
+from dego import GaussianSet, spherical_harmonics, splat
 from dego.compat.gsplat import rasterization
 from tests.helpers.splatting import make_cameras, make_scene_gaussians
 
@@ -172,9 +172,8 @@ def test_gradients_equal_dego_splat(packed: bool, render_mode: str) -> None:
     )
     (colors.square().sum() + alphas.sum()).backward()
     reference = {k: v.clone().requires_grad_(True) for k, v in t.items()}
-    expected_colors, expected_alphas, _ = splat_equivalent(
-        reference, render_mode, radius_rule="gsplat>=1.5"
-    )
+    # the adapter's default (gsplat_version=None) is splat's default
+    expected_colors, expected_alphas, _ = splat_equivalent(reference, render_mode)
     (expected_colors.square().sum() + expected_alphas.sum()).backward()
     for name in ("means", "quats", "scales", "opacities", "colors", "backgrounds"):
         got, want = leaves[name].grad, reference[name].grad
@@ -202,7 +201,6 @@ def test_means2d_grad_and_absgrad_for_densification(packed: bool) -> None:
     _, _, out = splat_equivalent(
         {k: v.detach().requires_grad_(k == "means") for k, v in t.items()},
         "RGB",
-        radius_rule="gsplat>=1.5",
         absgrad=True,
     )
     out.projection.means2d.retain_grad()
@@ -216,10 +214,22 @@ def test_means2d_grad_and_absgrad_for_densification(packed: bool) -> None:
 
 def test_gsplat_version_decides_the_radii_layout() -> None:
     t = gsplat_inputs((), 2, 10, 3, seed=0, per_camera=False)
-    _, _, new = call(t, packed=False)
+    _, _, new = call(t, packed=False, gsplat_version="1.5")
     _, _, old = call(t, packed=False, gsplat_version="1.4.0")
+    _, _, default = call(t, packed=False)  # splat's rule, gsplat <= 1.4
     assert new["radii"].shape == (2, 10, 2)
     assert old["radii"].shape == (2, 10)
+    assert torch.equal(default["radii"], old["radii"])
+
+
+def test_default_follows_dego_splat() -> None:
+    """One default for both entry points: ``gsplat_version=None`` renders as ``splat``."""
+    t = gsplat_inputs((), 2, 15, 3, seed=5, per_camera=False)
+    colors, alphas, _ = call(t, backgrounds=t["backgrounds"])
+    expected_colors, expected_alphas, _ = splat_equivalent(t, "RGB")
+    assert torch.equal(colors, expected_colors)
+    assert torch.equal(alphas, expected_alphas)
+    assert torch.equal(colors, call(t, backgrounds=t["backgrounds"], gsplat_version="1.4")[0])
 
 
 @pytest.mark.parametrize(
@@ -261,7 +271,6 @@ def test_layout_only_and_default_valued_options_are_accepted() -> None:
 @pytest.mark.parametrize(
     ("option", "value"),
     [
-        ("sh_degree", 3),
         ("camera_model", "fisheye"),
         ("camera_model", "ortho"),
         ("distributed", True),
@@ -296,6 +305,7 @@ def test_unknown_keyword_lists_the_accepted_names() -> None:
         (lambda t: {"viewmats": t["viewmats"][None]}, r"viewmats: expected shape \[\.\.\., C"),
         (lambda t: {"Ks": t["Ks"][..., :2, :]}, r"Ks: expected shape \[1, 3, 3\]"),
         (lambda t: {"colors": t["colors"][:5]}, r"colors: expected shape \[8, D\]"),
+        (lambda t: {"colors": t["colors"][:5, None]}, r"colors:.*\[8, K, 3\]"),
         (lambda t: {"means": t["means"].int()}, r"means: expected a floating-point tensor"),
     ],
 )
@@ -332,3 +342,87 @@ def test_runs_on_device(device: torch.device) -> None:
     cpu = {k: v.cpu() for k, v in t.items()}
     expected = call(cpu, render_mode="RGB+ED", backgrounds=cpu["backgrounds"])[0]
     torch.testing.assert_close(colors.cpu(), expected, rtol=1e-4, atol=1e-4)
+
+
+def sh_inputs(
+    batch: tuple[int, ...], cameras: int, n: int, k: int, *, seed: int, per_camera: bool
+) -> dict[str, Tensor]:
+    """``gsplat_inputs`` with SH coefficients ``[..., (C,) N, K, 3]`` as ``colors``."""
+    t = gsplat_inputs(batch, cameras, n, 3, seed=seed, per_camera=False)
+    g = torch.Generator().manual_seed(seed + 1)
+    lead = (*batch, cameras) if per_camera else batch
+    t["colors"] = 0.5 * torch.randn(*lead, n, k, 3, generator=g, dtype=torch.float64)
+    return t
+
+
+def sh_colours_by_hand(t: dict[str, Tensor], degree: int) -> Tensor:
+    """gsplat's recipe: camera centres from ``inverse(viewmats)``, SH + 0.5, clamped at 0."""
+    centres = torch.linalg.inv(t["viewmats"])[..., :3, 3]  # [..., C, 3]
+    directions = t["means"][..., None, :, :] - centres[..., :, None, :]  # [..., C, N, 3]
+    coefficients = t["colors"]
+    if coefficients.ndim == directions.ndim:  # [..., N, K, 3]: shared by the cameras
+        coefficients = coefficients[..., None, :, :, :].expand(
+            *directions.shape[:-1], *coefficients.shape[-2:]
+        )
+    return torch.clamp_min(spherical_harmonics(degree, directions, coefficients) + 0.5, 0.0)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
+@pytest.mark.parametrize(
+    ("batch", "per_camera", "packed"),
+    [((), False, True), ((2,), True, False), ((2, 1), False, False)],
+)
+def test_sh_colours_equal_evaluating_by_hand_then_rendering(
+    degree: int, batch: tuple[int, ...], per_camera: bool, packed: bool
+) -> None:
+    t = sh_inputs(batch, 2, 15, 25, seed=degree, per_camera=per_camera)
+    colors, alphas, meta = call(
+        t, sh_degree=degree, packed=packed, backgrounds=t["backgrounds"], render_mode="RGB+ED"
+    )
+    raw = t | {"colors": sh_colours_by_hand(t, degree)}  # [..., C, N, 3] post-activation
+    expected_colors, expected_alphas, expected_meta = call(
+        raw, packed=packed, backgrounds=t["backgrounds"], render_mode="RGB+ED"
+    )
+    assert colors.shape == (*batch, 2, *SIZE, 4)
+    torch.testing.assert_close(colors, expected_colors, rtol=1e-12, atol=1e-12)
+    assert torch.equal(alphas, expected_alphas)
+    assert torch.equal(meta["radii"], expected_meta["radii"])
+
+
+def test_sh_extra_coefficients_are_ignored_and_gradients_flow() -> None:
+    t = sh_inputs((), 2, 12, 16, seed=7, per_camera=False)
+    low = t | {"colors": t["colors"][:, :4]}
+    assert torch.equal(call(t, sh_degree=1)[0], call(low, sh_degree=1)[0])
+    leaves = {k: v.clone().requires_grad_(k in ("colors", "means")) for k, v in t.items()}
+    colors, _, _ = call(leaves, sh_degree=3)
+    colors.square().sum().backward()
+    for name in ("colors", "means"):
+        grad = leaves[name].grad
+        assert grad is not None and bool(grad.isfinite().all()) and float(grad.abs().max()) > 0
+
+
+def test_sh_degree_zero_is_the_dc_term_plus_one_half() -> None:
+    t = sh_inputs((), 1, 10, 1, seed=8, per_camera=False)
+    dc = torch.clamp_min(0.5 / math.sqrt(math.pi) * t["colors"][:, 0] + 0.5, 0.0)  # [N, 3]
+    expected = call(t | {"colors": dc})[0]
+    torch.testing.assert_close(call(t, sh_degree=0)[0], expected, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize(("degree", "k"), [(-1, 16), (5, 36), (3, 9), (1, 3), (True, 4)])
+def test_bad_sh_degree_names_it(degree: Any, k: int) -> None:
+    t = sh_inputs((), 1, 8, k, seed=1, per_camera=False)
+    with pytest.raises(ValueError, match=r"^sh_degree"):
+        call(t, sh_degree=degree)
+
+
+@pytest.mark.parametrize(
+    ("shape", "sh_degree"),
+    [((8, 3), 1), ((8, 4, 4), 1), ((5, 4, 3), 1), ((2, 8, 4, 3), 1), ((8, 4, 3, 1), None)],
+)
+def test_bad_colour_shapes_list_both_layouts(shape: tuple[int, ...], sh_degree: int | None) -> None:
+    t = gsplat_inputs((), 1, 8, 3, seed=1, per_camera=False)
+    t["colors"] = torch.rand(shape, dtype=torch.float64)
+    with pytest.raises(
+        ValueError, match=r"^colors: .*\[8, D\].*\[8, K, 3\]|^colors: .*\[8, K, 3\].*\[8, D\]"
+    ):
+        call(t, sh_degree=sh_degree)

@@ -386,7 +386,27 @@ def test_bad_arguments_exit_with_a_message(
 def test_cuda_device_is_refused_without_cuda(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["demo", "--device", "cuda"])
-    assert "--device" in capsys.readouterr().err
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[0].startswith("usage: dego demo ")  # the demo's usage, not the top level's
+    assert lines[-1].startswith("dego demo: error: argument --device: ")
+    assert "CUDA is not available" in lines[-1]
+
+
+def test_one_frame_is_refused_with_its_reason(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import dego.cli
+
+    def started(*args: object, **kwargs: object) -> int:
+        raise AssertionError("the demo started with one frame")
+
+    monkeypatch.setattr(dego.cli, "run_demo", started)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["demo", "--frames", "1"])
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("dego demo: error: argument --frames: expected at least 2")
+    assert "t!=0" in line and "nan" not in line
 
 
 def test_budgets() -> None:

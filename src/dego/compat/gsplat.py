@@ -5,7 +5,11 @@ Code written for gsplat (``from gsplat import rasterization``) runs unchanged wi
 layouts are accepted: gsplat >= 1.5's batched ``means [..., N, 3]``, ``viewmats
 [..., C, 4, 4]`` and gsplat <= 1.4's unbatched ``means [N, 3]``, ``viewmats [C, 4, 4]``.
 ``gsplat_version`` picks the radius rule (and ``meta["radii"]``'s shape) and the compositing
-constants (max alpha 0.99 from 1.6, 0.999 before) of that release.
+constants (max alpha 0.99 from 1.6, 0.999 before) of that release; left at ``None`` the
+adapter follows :func:`dego.splat`'s defaults (the ``"gsplat<=1.4"`` radius rule, max alpha
+0.999), so the same Gaussians give the same images through both entry points. With
+``sh_degree``, ``colors`` are spherical-harmonics coefficients, evaluated per camera by
+:func:`dego.spherical_harmonics` as gsplat does.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from torch import Tensor
 
 from dego._policy import float32_under_autocast
 from dego.gaussians import GaussianSet
+from dego.spherical_harmonics import MAX_DEGREE, spherical_harmonics
 from dego.splatting import gsplat_backend, pipeline
 from dego.splatting.projection import Projection
 from dego.splatting.types import SplatConfig
@@ -30,11 +35,6 @@ DEPTH_MODES |= {"RGB+D": "accumulated", "RGB+ED": "expected"}
 
 # gsplat options dego does not implement: their no-op value and what to do instead.
 _UNSUPPORTED: dict[str, tuple[Any, str]] = {
-    "sh_degree": (
-        None,
-        "evaluate the spherical harmonics per camera yourself (gsplat.spherical_harmonics "
-        "or your own code) and pass post-activation colours [..., C, N, D]",
-    ),
     "camera_model": ("pinhole", "dego renders pinhole cameras only: undistort the images"),
     "covars": (None, "pass quats and scales (GaussianSet.from_tensors converts conventions)"),
     "distributed": (False, "render each rank's cameras on that rank and gather the images"),
@@ -47,6 +47,8 @@ _UNSUPPORTED: dict[str, tuple[Any, str]] = {
     "rolling_shutter": ("GLOBAL", "rolling shutter is not implemented: use a global shutter"),
     "viewmats_rs": (None, "rolling shutter is not implemented: use a global shutter"),
 }
+# The radius rule dego.splat applies when SplatConfig.radius_rule is None (its default).
+SPLAT_RADIUS_RULE = "gsplat<=1.4"
 # Memory or speed knobs of gsplat's kernels: accepted, and the values are the same.
 _LAYOUT_ONLY = ("channel_chunk", "segmented")
 
@@ -78,6 +80,57 @@ def _release(gsplat_version: str) -> tuple[int, int]:
 def options_of_release(gsplat_version: str) -> dict[str, Any]:
     """The SplatConfig fields a gsplat release fixes: its radius rule and compositing constants."""
     return gsplat_backend.release_options(_release(gsplat_version))
+
+
+def _options(gsplat_version: str | None) -> dict[str, Any]:
+    """``options_of_release``, or with ``None`` the values ``dego.splat`` uses by default."""
+    if gsplat_version is not None:
+        return options_of_release(gsplat_version)
+    defaults = SplatConfig()
+    return {
+        "radius_rule": defaults.radius_rule or SPLAT_RADIUS_RULE,
+        "max_alpha": defaults.max_alpha,
+        "alpha_min": defaults.alpha_min,
+        "transmittance_min": defaults.transmittance_min,
+    }
+
+
+def _colors_layout(
+    colors: Any, batch: tuple[int, ...], cameras: int, n: int, sh_degree: int | None
+) -> bool:
+    """Check ``colors`` against the layouts gsplat accepts; return whether it is per camera."""
+    if not isinstance(colors, Tensor) or not colors.is_floating_point():
+        raise TypeError(f"colors: expected a floating-point tensor, got {type(colors).__name__}")
+    lead = "".join(f"{b}, " for b in batch)
+    raw = f"[{lead}{n}, D] or [{lead}{cameras}, {n}, D] (post-activation colours, sh_degree=None)"
+    sh = f"[{lead}{n}, K, 3] or [{lead}{cameras}, {n}, K, 3] (SH coefficients, with sh_degree)"
+    shape = tuple(colors.shape)
+    trailing = 1 if sh_degree is None else 2
+    prefix = shape[: len(shape) - trailing]
+    per_camera = prefix == (*batch, cameras, n)
+    ok = per_camera or prefix == (*batch, n)
+    if sh_degree is not None:
+        ok = ok and shape[-1] == 3
+    if not ok:
+        accepted = f"{raw}, or {sh}" if sh_degree is None else f"{sh}, or {raw}"
+        raise ValueError(f"colors: expected shape {accepted}; got {list(shape)}")
+    return per_camera
+
+
+def _evaluate_sh(
+    sh_degree: int, coefficients: Tensor, means: Tensor, viewmats: Tensor, per_camera: bool
+) -> Tensor:
+    """gsplat's SH colours ``[..., C, N, 3]``: evaluated along camera centre -> mean, + 0.5,
+    clamped at 0."""
+    rotation, translation = viewmats[..., :3, :3], viewmats[..., :3, 3]
+    centres = -(rotation.transpose(-1, -2) @ translation.unsqueeze(-1)).squeeze(-1)  # [..., C, 3]
+    directions = means.unsqueeze(-3) - centres.unsqueeze(-2)  # [..., C, N, 3]
+    directions = directions.to(coefficients.dtype)
+    if not per_camera:  # [..., N, K, 3] -> [..., C, N, K, 3]
+        coefficients = coefficients.unsqueeze(-4).expand(
+            *directions.shape[:-1], *coefficients.shape[-2:]
+        )
+    return torch.clamp_min(spherical_harmonics(sh_degree, directions, coefficients) + 0.5, 0.0)
 
 
 def _check_shape(name: str, tensor: Any, expected: tuple[int | str, ...]) -> None:
@@ -122,7 +175,7 @@ def rasterization(
     rasterize_mode: Literal["classic", "antialiased"] = "classic",
     camera_model: str = "pinhole",
     *,
-    gsplat_version: str = "1.5",
+    gsplat_version: str | None = None,
     **rest: Any,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """gsplat's ``rasterization``, computed by :func:`dego.splat` (any device).
@@ -132,7 +185,8 @@ def rasterization(
         quats: ``[..., N, 4]`` wxyz, any norm.
         scales: ``[..., N, 3]`` standard deviations (not log-scales).
         opacities: ``[..., N]`` in [0, 1] (not logits).
-        colors: post-activation ``[..., N, D]`` or per camera ``[..., C, N, D]``.
+        colors: post-activation ``[..., N, D]`` or per camera ``[..., C, N, D]``; with
+            ``sh_degree``, SH coefficients ``[..., N, K, 3]`` or ``[..., C, N, K, 3]``.
         viewmats: ``[..., C, 4, 4]`` world-to-camera, OpenCV axes.
         Ks: ``[..., C, 3, 3]`` pinhole intrinsics.
         width: image width in pixels (gsplat passes width before height).
@@ -141,7 +195,10 @@ def rasterization(
         far_plane: cull Gaussians whose camera z is above this.
         radius_clip: skip Gaussians whose pixel radius is at most this on every axis.
         eps2d: screen-space dilation of the 2D covariance (pixels^2).
-        sh_degree: must be None (spherical harmonics are not evaluated).
+        sh_degree: None (``colors`` are colours), or the SH degree (0-4, with
+            ``(sh_degree + 1)^2 <= K``) at which to evaluate the coefficients ``colors``
+            along each camera centre -> mean direction, as gsplat: the colour is
+            ``max(SH + 0.5, 0)`` (:func:`dego.spherical_harmonics`).
         packed: the layout of ``meta``: packed ``[nnz, ...]`` entries with
             ``camera_ids`` / ``gaussian_ids`` (and ``batch_ids``), as gsplat, or dense
             ``[..., C, N, ...]``; the images are the same.
@@ -157,7 +214,10 @@ def rasterization(
         gsplat_version: the gsplat release whose rules to follow: below 1.5 one radius
             per Gaussian (``meta["radii"]`` ``[..., C, N]``), from 1.5 per-axis,
             opacity-aware radii (``[..., C, N, 2]``); from 1.6 alpha is capped at 0.99
-            (0.999 before). Default: 1.5, the newest release on PyPI.
+            (0.999 before). Default ``None``: :func:`dego.splat`'s defaults, i.e. the
+            ``"gsplat<=1.4"`` radius rule (``meta["radii"]`` ``[..., C, N]``) and max alpha
+            0.999, so both entry points give the same images; pass ``"1.5"`` for gsplat
+            1.5's radii.
         **rest: gsplat's other keywords: ``channel_chunk`` and ``segmented`` are accepted
             (no effect on the values); distortion, rolling-shutter, unscented-transform,
             ``covars`` and ``distributed`` raise ``NotImplementedError`` unless left at
@@ -183,12 +243,21 @@ def rasterization(
                 f"rasterization() got an unexpected keyword {name!r}; accepted: "
                 + ", ".join(accepted)
             )
-    for name, value in (("sh_degree", sh_degree), ("camera_model", camera_model)):
-        if not _is_default(name, value):
-            raise NotImplementedError(f"{name}={value!r}: {_UNSUPPORTED[name][1]}")
+    if not _is_default("camera_model", camera_model):
+        raise NotImplementedError(
+            f"camera_model={camera_model!r}: {_UNSUPPORTED['camera_model'][1]}"
+        )
+    if sh_degree is not None and (
+        isinstance(sh_degree, bool)
+        or not isinstance(sh_degree, int)
+        or not 0 <= sh_degree <= MAX_DEGREE
+    ):
+        raise ValueError(
+            f"sh_degree: expected None or an int in 0..{MAX_DEGREE}, got {sh_degree!r}"
+        )
     if render_mode not in DEPTH_MODES:
         raise ValueError(f"render_mode: expected one of {list(DEPTH_MODES)}, got {render_mode!r}")
-    release_options = options_of_release(gsplat_version)
+    release_options = _options(gsplat_version)
     radius_rule = release_options["radius_rule"]
     try:
         width, height = operator.index(width), operator.index(height)
@@ -215,11 +284,15 @@ def rasterization(
     cameras = viewmats.shape[-3]
     _check_shape("viewmats", viewmats, (*batch, cameras, 4, 4))
     _check_shape("Ks", Ks, (*batch, cameras, 3, 3))
-    per_camera = isinstance(colors, Tensor) and colors.ndim == len(batch) + 3
-    if per_camera:
-        _check_shape("colors", colors, (*batch, cameras, n, "D"))
-    else:
-        _check_shape("colors", colors, (*batch, n, "D"))
+    per_camera = _colors_layout(colors, batch, cameras, n, sh_degree)
+    if sh_degree is not None:
+        if (sh_degree + 1) ** 2 > colors.shape[-2]:
+            raise ValueError(
+                f"sh_degree: degree {sh_degree} needs (sh_degree + 1)^2 = {(sh_degree + 1) ** 2} "
+                f"coefficients, but colors has K = {colors.shape[-2]} ([..., N, K, 3])"
+            )
+        colors = _evaluate_sh(sh_degree, colors, means, viewmats, per_camera)  # [..., C, N, 3]
+        per_camera = True
     channels = colors.shape[-1]
     if backgrounds is not None:
         _check_shape("backgrounds", backgrounds, (*batch, cameras, channels))

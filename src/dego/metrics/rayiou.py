@@ -6,7 +6,7 @@ free are scored: a ray is a true positive for class c at threshold t when both h
 have label c and ``|d_pred - d_gt| < t`` (strict). Counts are pooled over the data set:
 ``IoU[t, c] = tp / (gt_cnt + pred_cnt - tp)``, RayIoU@t is the nanmean over the 17
 non-free classes, RayIoU the mean over thresholds. Every rule is SparseOcc's
-(``reference/metrics-protocol-facts.md`` section 3).
+(listed in docs/rayiou.md, "The rules").
 """
 
 from __future__ import annotations
