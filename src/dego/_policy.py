@@ -219,6 +219,60 @@ def _example(values: Tensor, bad: Tensor) -> str:
     return f"{values[bad][0].item():.6g}"
 
 
+def scales_check(
+    prefix: str, scales: Tensor, *, positive: bool = True, needed_for: str = ""
+) -> Check:
+    """Scales must be > 0 (``positive=False``: only scales that are *all* negative are
+    refused, as log-scales); the message adds the log-scales hint when every scale is
+    negative, and ``needed_for`` (``"; ..."``) says why positivity matters."""
+
+    def error() -> Exception:
+        if not positive:
+            return ValueError(f"{prefix}scales: {LOG_SCALES_HINT}")
+        bad = ~(scales > 0)
+        message = (
+            f"{prefix}scales: {int(bad.sum())} of {scales.numel()} values are not positive "
+            f"(e.g. {_example(scales, bad)}){needed_for}"
+        )
+        if bool((scales < 0).all()):
+            message += f"; {LOG_SCALES_HINT}"
+        return ValueError(message)
+
+    if positive:
+        return (scales > 0).all(), f"{prefix}scales: values are not positive", error
+    ok = ~(scales < 0).all() | (scales.numel() == 0)
+    return ok, f"{prefix}scales: every value is negative (log-scales?)", error
+
+
+def quats_check(prefix: str, quats: Tensor) -> Check:
+    """Quaternions must have a norm above :data:`~dego._geometry.QUATERNION_EPS`."""
+    zero = torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS
+
+    def error() -> Exception:
+        return ValueError(
+            f"{prefix}quats: {int(zero.sum())} of {quats.shape[:-1].numel()} quaternions "
+            f"have zero norm (<= {QUATERNION_EPS:g}) and encode no rotation"
+        )
+
+    return ~zero.any(), f"{prefix}quats: quaternions have zero norm", error
+
+
+def opacities_check(prefix: str, opacities: Tensor) -> Check:
+    """Opacities must lie in [0, 1]; the message adds the logits hint when none does."""
+    outside = (opacities < 0) | (opacities > 1)
+
+    def error() -> Exception:
+        message = (
+            f"{prefix}opacities: {int(outside.sum())} of {opacities.numel()} values lie "
+            f"outside [0, 1] (e.g. {_example(opacities, outside)})"
+        )
+        if bool(outside.all()):
+            message += f"; {LOGITS_HINT}"
+        return ValueError(message)
+
+    return ~outside.any(), f"{prefix}opacities: values lie outside [0, 1]", error
+
+
 def gaussian_value_checks(
     prefix: str,
     *,
@@ -228,57 +282,14 @@ def gaussian_value_checks(
     positive_scales: bool = True,
     scales_needed_for: str = "",
 ) -> list[Check]:
-    """The value :data:`Check` s of Gaussian fields, worded once for every entry point.
-
-    ``prefix`` goes before each field name (``"gaussians."`` in ``splat``). Scales must be
-    > 0 (``positive_scales=False``: only scales that are *all* negative are refused, as
-    log-scales); quaternions (when given) of non-zero norm; opacities in [0, 1], checked in
-    this order. When every scale is negative or every opacity outside [0, 1] the message
-    adds the log-scales / logits hint. ``scales_needed_for`` (``"; ..."``) says why
-    positivity matters.
-    """
-    outside = (opacities < 0) | (opacities > 1)
-
-    def scales_error() -> Exception:
-        if not positive_scales:
-            return ValueError(f"{prefix}scales: {LOG_SCALES_HINT}")
-        bad = ~(scales > 0)
-        message = (
-            f"{prefix}scales: {int(bad.sum())} of {scales.numel()} values are not positive "
-            f"(e.g. {_example(scales, bad)}){scales_needed_for}"
-        )
-        if bool((scales < 0).all()):
-            message += f"; {LOG_SCALES_HINT}"
-        return ValueError(message)
-
-    def opacities_error() -> Exception:
-        message = (
-            f"{prefix}opacities: {int(outside.sum())} of {opacities.numel()} values lie "
-            f"outside [0, 1] (e.g. {_example(opacities, outside)})"
-        )
-        if bool(outside.all()):
-            message += f"; {LOGITS_HINT}"
-        return ValueError(message)
-
-    if positive_scales:
-        scales_ok = (scales > 0).all()
-        scales_summary = f"{prefix}scales: values are not positive"
-    else:
-        scales_ok = ~(scales < 0).all() | (scales.numel() == 0)
-        scales_summary = f"{prefix}scales: every value is negative (log-scales?)"
-    checks: list[Check] = [(scales_ok, scales_summary, scales_error)]
+    """The value :data:`Check` s of Gaussian fields, worded once for every entry point:
+    :func:`scales_check`, :func:`quats_check` (when ``quats`` is given) and
+    :func:`opacities_check`, in this order. ``prefix`` goes before each field name
+    (``"gaussians."`` in ``splat``)."""
+    checks = [scales_check(prefix, scales, positive=positive_scales, needed_for=scales_needed_for)]
     if quats is not None:
-        zero = torch.linalg.vector_norm(quats, dim=-1) <= QUATERNION_EPS
-
-        def quats_error() -> Exception:
-            return ValueError(
-                f"{prefix}quats: {int(zero.sum())} of {quats.shape[:-1].numel()} quaternions "
-                f"have zero norm (<= {QUATERNION_EPS:g}) and encode no rotation"
-            )
-
-        checks.append((~zero.any(), f"{prefix}quats: quaternions have zero norm", quats_error))
-    opacities_summary = f"{prefix}opacities: values lie outside [0, 1]"
-    checks.append((~outside.any(), opacities_summary, opacities_error))
+        checks.append(quats_check(prefix, quats))
+    checks.append(opacities_check(prefix, opacities))
     return checks
 
 
@@ -301,6 +312,9 @@ __all__ = [
     "gaussian_value_checks",
     "get_memory_limit",
     "memory_limit",
+    "opacities_check",
+    "quats_check",
     "run_checks",
+    "scales_check",
     "set_memory_limit",
 ]

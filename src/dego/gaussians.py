@@ -33,6 +33,7 @@ from dego._policy import (
     float32_under_autocast,
     gaussian_value_checks,
     run_checks,
+    scales_check,
 )
 from dego._typing import typechecked
 
@@ -47,13 +48,8 @@ except ImportError:  # torch < 2.3
 
 def _check_positive_scales(scales: Tensor) -> None:
     """``ValueError`` naming ``scales`` unless every value is > 0 (NaN fails too)."""
-    check = gaussian_value_checks(
-        "",
-        scales=scales,
-        opacities=scales.new_zeros(()),
-        scales_needed_for="; precisions need 1/s^2 of positive standard deviations",
-    )[0]
-    run_checks([check])
+    needed_for = "; precisions need 1/s^2 of positive standard deviations"
+    run_checks([scales_check("", scales, needed_for=needed_for)])
 
 
 @typechecked
