@@ -6,11 +6,9 @@ and the restructured package keeps its public and pickled names."""
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import io
 import math
 import pickle
-import typing
 from typing import Any
 
 import pytest
@@ -18,9 +16,10 @@ import torch
 
 import dego.splatting
 from dego import DifferentiableSplatter, splat
-from dego._options import field_names, keyword_mismatches
+from dego._options import keyword_mismatches
 from dego.splatting import pipeline, splatter
 from dego.splatting.types import SplatConfig, SplatOptions, SplatOutput
+from tests.helpers.options import assert_overrides_typed_as_config
 from tests.helpers.splatting import make_cameras, make_scene_gaussians
 
 SIZE = (16, 24)
@@ -58,12 +57,7 @@ def test_splat_keywords_are_the_config_fields() -> None:
 
 
 def test_the_overrides_typed_dict_is_the_config() -> None:
-    assert list(SplatOptions.__annotations__) == list(field_names(SplatConfig))
-    assert typing.get_type_hints(SplatOptions) == typing.get_type_hints(SplatConfig)
-    assert not SplatOptions.__required_keys__
-    parameter = inspect.signature(DifferentiableSplatter).parameters["overrides"]
-    assert parameter.kind is parameter.VAR_KEYWORD
-    assert parameter.annotation == "Unpack[SplatOptions]"
+    assert_overrides_typed_as_config(SplatOptions, SplatConfig, DifferentiableSplatter)
 
 
 def test_defaults_agree_everywhere() -> None:

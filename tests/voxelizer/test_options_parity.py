@@ -19,6 +19,7 @@ import dego.voxelizer
 from dego import GaussianVoxelizer, VoxelGrid, voxelize
 from dego._options import field_names, keyword_mismatches
 from dego.voxelizer import VoxelizerConfig, VoxelizerOptions, VoxelOutput, api
+from tests.helpers.options import assert_overrides_typed_as_config
 from tests.helpers.strategies import make_gaussian_set
 
 GRID = VoxelGrid((-2.0, -2.0, -1.0), (2.0, 2.0, 1.0), 0.25)  # (16, 16, 8)
@@ -53,12 +54,7 @@ def test_voxelize_keywords_are_the_config_fields() -> None:
 
 
 def test_the_overrides_typed_dict_is_the_config() -> None:
-    assert list(VoxelizerOptions.__annotations__) == list(field_names(VoxelizerConfig))
-    assert typing.get_type_hints(VoxelizerOptions) == typing.get_type_hints(VoxelizerConfig)
-    assert not VoxelizerOptions.__required_keys__
-    parameter = inspect.signature(GaussianVoxelizer).parameters["overrides"]
-    assert parameter.kind is parameter.VAR_KEYWORD
-    assert parameter.annotation == "Unpack[VoxelizerOptions]"
+    assert_overrides_typed_as_config(VoxelizerOptions, VoxelizerConfig, GaussianVoxelizer)
 
 
 def test_defaults_agree_everywhere() -> None:
