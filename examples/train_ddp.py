@@ -378,7 +378,10 @@ def main() -> None:
             if args.out is not None:
                 args.out.mkdir(parents=True, exist_ok=True)
                 torch.save(model.state_dict(), args.out / "model.pt")
-                scores = {**occupancy_report.as_dict(), **rayiou_report.as_dict()}
+                scores = {  # percent (2 decimals), like the tables above
+                    **occupancy_report.as_dict(percent=True),
+                    **rayiou_report.as_dict(percent=True),
+                }
                 metrics = {k: _finite_or_none(v) for k, v in scores.items()}
                 (args.out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
                 print(f"\nwrote {args.out / 'model.pt'} and {args.out / 'metrics.json'}")

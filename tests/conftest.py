@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, settings
 # Before the first import of them: pytest rewrites the asserts of test modules only.
 pytest.register_assert_rewrite("tests.helpers", "tests.reference")
 
-from tests.helpers.repo import ROOT, SOURCE_TREE_REASON  # noqa: E402
+from tests.helpers.repo import ROOT, SLOW_MARKER, SOURCE_TREE_REASON  # noqa: E402
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # Under pytest-xdist every worker (and every process a test starts) computes on one
@@ -37,9 +37,7 @@ settings.load_profile(
 def pytest_configure(config: pytest.Config) -> None:
     # Also in pyproject.toml; registered here for runs from a copy of tests/ (no pyproject there,
     # and `--strict-markers` would reject the marker).
-    config.addinivalue_line(
-        "markers", "slow: long-running case (kept few; still part of the default run)"
-    )
+    config.addinivalue_line("markers", SLOW_MARKER)
 
 
 @pytest.fixture(scope="session")

@@ -291,6 +291,7 @@ def test_per_axis_scale_equals_resize_crop(dtype: torch.dtype, device: torch.dev
     )
 
 
+@pytest.mark.slow
 @given(batch_shapes, st.integers(0, 2**31 - 1))
 def test_bevdet_3x3_layout_equals_2x2_layout_and_maps_pixels(
     shape: tuple[int, ...], seed: int

@@ -251,6 +251,7 @@ def test_gaussian_set_dict_round_trip(gs: GaussianSet, dtype: torch.dtype) -> No
     assert_same(GaussianSet.from_dict(save_load(plain)), gs)
 
 
+@pytest.mark.slow
 def test_dict_form_loads_without_dego(objects: dict, tmp_path: Path) -> None:
     path = tmp_path / "plain.pt"
     forms = {f"{name}-{dtype}": obj.to_dict() for (name, dtype), obj in objects.items()}

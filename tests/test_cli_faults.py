@@ -289,6 +289,7 @@ def test_atomic_writer_is_all_or_nothing(tmp_path: Path, monkeypatch: pytest.Mon
 # -- Ctrl-C -----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["demo", "study"])
 def test_ctrl_c_ends_with_130_one_line_and_no_partial_outputs(command: str, tmp_path: Path) -> None:
     fresh = tmp_path / "fresh" / "out"  # made by the command: removed again

@@ -67,6 +67,7 @@ def test_every_op_in_one_compiled_step_equals_eager(monkeypatch: pytest.MonkeyPa
             assert _relative_error(value, compiled_result[1][name]) < 1e-5, name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("op", OPS)
 def test_graph_breaks_per_op(op: str, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(composite, "COMPILED_KERNELS", None)  # the count does not depend on it
@@ -101,6 +102,7 @@ def test_inductor_chunk_kernels_equal_the_eager_ones() -> None:
 # ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_wrong_shape_under_compile_names_the_argument() -> None:
     inputs = make_inputs(n=20)
     gaussians = gaussian_set(inputs)
@@ -115,6 +117,7 @@ def test_a_wrong_shape_under_compile_names_the_argument() -> None:
         render(inputs.world_to_cam[..., :3, :])
 
 
+@pytest.mark.slow
 def test_non_finite_values_under_compile_raise_naming_the_argument() -> None:
     inputs = make_inputs(n=20)
     grid = VoxelGrid((-8.0, -8.0, -2.0), (8.0, 8.0, 2.0), 0.8)
@@ -133,6 +136,7 @@ def test_non_finite_values_under_compile_raise_naming_the_argument() -> None:
         run(bad)
 
 
+@pytest.mark.slow
 def test_the_checks_add_no_host_sync_under_compile() -> None:
     # Everything but the data-dependent loops compiles into graphs: no .item() / .tolist().
     inputs = make_inputs(n=20)
@@ -162,6 +166,7 @@ def _example(
 _SHAPES = st.lists(st.integers(1, 3), min_size=0, max_size=4).map(tuple)
 
 
+@pytest.mark.slow
 @given(x=_SHAPES, y=st.one_of(st.none(), _SHAPES), z=st.one_of(st.none(), _SHAPES))
 def test_the_traced_check_agrees_with_jaxtyping(
     x: tuple[int, ...], y: tuple[int, ...] | None, z: tuple[int, ...] | None

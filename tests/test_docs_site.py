@@ -14,6 +14,7 @@ import pytest
 from tests.helpers.repo import needs_source_tree
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     importlib.util.find_spec("mkdocs") is None, reason="mkdocs is not installed (extra: docs)"
 )

@@ -54,14 +54,15 @@ def test_compiled_bf16_fit_logs_both_metrics(example: ModuleType, tmp_path: Path
         assert all(math.isfinite(v) for v in values), (term, values)
     assert summary["losses"]["total"][0] > 0
 
-    # the JSON summary: both metrics, fractions, as Lightning logged them
+    # the JSON summary: both metrics in percent, equal to what Lightning logged
     written = json.loads((tmp_path / "summary.json").read_text())
+    assert written["units"] == "percent"
     assert written["settings"]["compile_backend"] == "eager"
     for name in ("initial", "final"):
         for key in ("miou", "rayiou"):
-            assert 0 <= written[name][key] <= 1, (name, key, written[name])
+            assert 0 <= written[name][key] <= 100, (name, key, written[name])
     for key in ("miou", "rayiou"):
-        assert written["logged"][f"val/{key}"] == pytest.approx(written["final"][key], abs=1e-5)
+        assert written["logged"][f"val/{key}"] == pytest.approx(written["final"][key], abs=1e-3)
     # Lightning reset the metrics between the two validation runs: the scores differ
     assert written["initial"] != written["final"]
 

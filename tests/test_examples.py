@@ -56,6 +56,7 @@ def test_every_example_has_arguments(source_tree: Path) -> None:
     assert not missing, f"add the arguments of {missing} to ARGUMENTS in {Path(__file__).name}"
 
 
+@pytest.mark.slow
 @needs_source_tree
 @pytest.mark.parametrize("name", sorted(ARGUMENTS))
 def test_example_runs(name: str, tmp_path: Path) -> None:

@@ -120,6 +120,7 @@ def no_inflating(monkeypatch: pytest.MonkeyPatch) -> list[str]:
 
 
 # -- zip bombs ----------------------------------------------------------------------------
+@pytest.mark.slow
 def test_zip_bomb_labels_are_refused_from_the_header(
     tmp_path: Path, no_inflating: list[str]
 ) -> None:

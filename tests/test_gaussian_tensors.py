@@ -52,6 +52,7 @@ def assert_field(actual: torch.Tensor, expected: torch.Tensor, *, exact: bool) -
 # ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES.values(), ids=DTYPES.keys())
 @pytest.mark.parametrize("combination", COMBINATIONS, ids="-".join)
 @FEW
@@ -107,6 +108,7 @@ def foreign_tensors(
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES.values(), ids=DTYPES.keys())
 @pytest.mark.parametrize("combination", COMBINATIONS, ids="-".join)
 @FEW
@@ -142,6 +144,7 @@ def test_logit_round_trip_keeps_zero_opacity_padding() -> None:
 # ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES.values(), ids=DTYPES.keys())
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 6))
 def test_gaussianformer_rotation_gives_r_transpose_s2_r(

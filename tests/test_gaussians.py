@@ -433,6 +433,7 @@ def test_precisions_of_a_non_positive_scale_raise_naming_scales(bad: float) -> N
     assert bool(torch.isfinite(build_covariances(gs.quats, scales.nan_to_num(1.0))).all())
 
 
+@pytest.mark.slow
 def test_precisions_compile_without_a_graph_break() -> None:
     gs = make_gaussian_set((2,), 5, dtype=torch.float32, scale_range=(0.5, 2.0))
     compiled = torch.compile(lambda g: g.precisions(), backend="eager", fullgraph=True)
@@ -444,6 +445,7 @@ def test_precisions_compile_without_a_graph_break() -> None:
 # ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_gradcheck_covariances_and_precisions() -> None:
     gs = make_gaussian_set((2,), 3, seed=3, scale_range=(0.5, 2.0))
     quats = gs.quats.clone().requires_grad_()

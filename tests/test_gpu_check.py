@@ -27,6 +27,7 @@ pytestmark = [
 ]
 
 
+@pytest.mark.slow
 def test_cpu_dry_run_writes_the_report(tmp_path: Path) -> None:
     out = tmp_path / "check"
     done = subprocess.run(

@@ -117,6 +117,7 @@ def test_pure_viz_functions_do_not_depend_on_the_label_dtype(seed, dtype, numpy)
     np.testing.assert_array_equal(np.asarray(rgb), colorize_labels(torch.from_numpy(labels)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", NP_DTYPES)
 def test_plot_bev_and_compare_bev_do_not_depend_on_the_label_dtype(dtype) -> None:
     pytest.importorskip("matplotlib")

@@ -18,6 +18,7 @@ def test_there_are_at_least_four_notebooks(source_tree: Path) -> None:
     assert len(notebooks) >= 4, [p.name for p in notebooks]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS)
 def test_notebook_executes(path: Path, tmp_path: Path) -> None:
     nbclient = pytest.importorskip("nbclient")

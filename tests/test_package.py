@@ -24,6 +24,7 @@ def test_typed_marker_is_shipped() -> None:
     assert resources.files("dego").joinpath("py.typed").is_file()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "script, args",
     [
@@ -70,6 +71,18 @@ def test_readme_states_how_long_the_tests_take(source_tree: Path) -> None:
     text = " ".join((source_tree / "README.md").read_text().split())
     assert "The tests (`python -m pytest -q`" in text
     assert "3.5-5 minutes on the 2-core CPU development machine" in text
+    assert 'quick smoke run, `python -m pytest -q -m "not slow"`' in text
+
+
+def test_the_slow_marker_is_registered_with_one_description(source_tree: Path) -> None:
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+
+    from tests.helpers.repo import SLOW_MARKER
+
+    pyproject = tomllib.loads((source_tree / "pyproject.toml").read_text())
+    assert pyproject["tool"]["pytest"]["ini_options"]["markers"] == [SLOW_MARKER]
+    ci = (source_tree / ".ci" / "run").read_text()
+    assert "python -m pytest -q" in ci  # CI runs the default command: every case, slow too
 
 
 def test_built_wheels_are_ignored(source_tree: Path) -> None:

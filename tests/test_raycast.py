@@ -409,6 +409,7 @@ def power_of_two_scaled(directions: np.ndarray) -> np.ndarray:
     return scaled.astype(directions.dtype)
 
 
+@pytest.mark.slow
 @settings(max_examples=40)
 @given(st.one_of(ray_problems(), tie_problems()))
 def test_matches_the_scalar_reference_exactly(problem) -> None:
@@ -448,6 +449,7 @@ def test_matches_the_scalar_reference_on_lidar_rays() -> None:
     assert (expected_label != FREE).any() and (expected_distance < 0).any()
 
 
+@pytest.mark.slow
 @settings(max_examples=30)
 @given(st.one_of(ray_problems(), tie_problems()), st.integers(0, 2**32 - 1))
 def test_one_traversal_through_several_grids_equals_separate_casts(problem, seed) -> None:
@@ -467,6 +469,7 @@ def test_one_traversal_through_several_grids_equals_separate_casts(problem, seed
         assert torch.equal(distance[i], alone_distance)
 
 
+@pytest.mark.slow
 @settings(max_examples=20)
 @given(ray_problems())
 def test_compiled_kernel_and_torch_loop_agree_exactly(problem) -> None:
@@ -487,6 +490,7 @@ def test_compiled_kernel_and_torch_loop_agree_exactly(problem) -> None:
         assert torch.equal(results["torch"][1], results["numba"][1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("chunk", [1, 4, 7, 10_000])
 def test_chunking_does_not_change_the_hits(chunk, monkeypatch) -> None:
     """Blocks of whole origins (R <= CHUNK_RAYS) and flat blocks (R > CHUNK_RAYS) give
@@ -634,6 +638,7 @@ LIDAR_ORIGINS = torch.tensor([[0.9858, 0.0, 1.8402], [-4.3, 2.0, 0.1], [3.1, -2.
 SOME_RAYS = generate_lidar_rays()[::37]  # 380 rays
 
 
+@pytest.mark.slow
 @settings(max_examples=25)
 @given(
     st.integers(-100, 100),

@@ -144,6 +144,7 @@ def test_coefficients_beyond_the_degree_are_ignored(degree: int) -> None:
     assert torch.equal(full, spherical_harmonics(degree, d, changed))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
 def test_gradcheck_in_coefficients_and_directions(degree: int) -> None:
     d = random_directions(4, seed=degree).requires_grad_(True)

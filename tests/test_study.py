@@ -209,6 +209,7 @@ def quick_study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     return out, result.stdout
 
 
+@pytest.mark.slow
 def test_quick_study_writes_the_report(quick_study: tuple[Path, str]) -> None:
     pytest.importorskip("matplotlib")
     out, stdout = quick_study
@@ -222,11 +223,20 @@ def test_quick_study_writes_the_report(quick_study: tuple[Path, str]) -> None:
     assert "decoupled - static on articulated t!=0" in text
     assert "the ground-truth motion (oracle) gains" in text
     assert text in stdout  # the report is also printed
+    # the progress counter reaches its total: one line per run, lifted-labels included
+    runs = len(QUICK_STUDY.seeds) * len(QUICK_STUDY.budgets) * len(STUDY_VARIANTS)
+    fits = runs - len(QUICK_STUDY.seeds) * len(QUICK_STUDY.budgets)
+    assert f"study: {runs} runs, {fits} of them fits" in stdout
+    counters = [line.split()[0] for line in stdout.splitlines() if line.startswith("[")]
+    assert counters == [f"[{i}/{runs}" for i in range(1, runs + 1)]
+    assert "lifted-labels (no fit): articulated t!=0" in stdout
 
 
+@pytest.mark.slow
 def test_quick_study_json_holds_every_run(quick_study: tuple[Path, str]) -> None:
     out, _ = quick_study
     payload = json.loads((out / "study.json").read_text())
+    assert payload["units"]["scores"] == "percent"
     runs = payload["runs"]
     expected = len(QUICK_STUDY.seeds) * len(QUICK_STUDY.budgets) * len(STUDY_VARIANTS)
     assert len(runs) == expected

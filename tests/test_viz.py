@@ -196,6 +196,7 @@ def test_without_matplotlib_plots_raise_a_helpful_import_error(
 # ----------------------------------------------------------------- pictures
 
 
+@pytest.mark.slow
 def test_plot_bev_writes_a_png_in_the_palette(mpl: object, tmp_path: Path) -> None:
     ax = plot_bev(scene(), grid=GRID, title="scene")
     path = save_figure(ax.figure, tmp_path / "bev.png")
@@ -222,6 +223,49 @@ def test_plot_bev_orientation_x_up_and_y_left(mpl: object, tmp_path: Path) -> No
     assert abs(car_col - centre_col) < 0.1 * half
     assert bus_col < centre_col - 0.5 * half  # left = left half
     assert abs(bus_row - centre_row) < 0.1 * half
+
+
+def test_plot_bev_greys_the_columns_outside_the_mask_and_outlines_the_rest(
+    mpl: object, tmp_path: Path
+) -> None:
+    labels = torch.full(GRID.shape, FREE_LABEL, dtype=torch.long)
+    labels[..., 0] = CAR  # every column a car, so the veil's grey is easy to tell apart
+    mask = torch.zeros(GRID.shape, dtype=torch.bool)
+    mask[20:, :, 3] = True  # scored: the front half (x > 0), one voxel per column suffices
+    ax = plot_bev(labels, grid=GRID, mask=mask)
+    rgb = read_png(save_figure(ax.figure, tmp_path / "masked.png")).astype(int)
+    centre_row, centre_col = axes_centre(ax, rgb.shape[0])
+    quarter = int(ax.get_window_extent().height / 4)
+    front = rgb[int(centre_row) - quarter, int(centre_col)]  # x > 0: scored, the car colour
+    back = rgb[int(centre_row) + quarter, int(centre_col)]  # x < 0: veiled
+    assert tuple(front) == PALETTE[CAR]
+    alpha = dego.viz.UNSCORED_RGBA[3]
+    veiled = (1 - alpha) * np.array(PALETTE[CAR]) + alpha * 255 * np.array(
+        dego.viz.UNSCORED_RGBA[:3]
+    )
+    assert np.abs(back - veiled).max() <= 2
+    assert len(ax.collections) == 1  # the outline of the scored region
+    # a 2D map gives the same veil; all scored: no veil, no outline
+    again = plot_bev(labels, grid=GRID, mask=mask.any(-1).numpy())
+    assert len(again.collections) == 1
+    full = plot_bev(labels, grid=GRID, mask=torch.ones(GRID.shape, dtype=torch.bool))
+    assert len(full.collections) == 0
+    with pytest.raises(TypeCheckError, match="mask"):  # not the labels' columns
+        plot_bev(labels, grid=GRID, mask=torch.ones(3, 3, dtype=torch.bool))
+    with pytest.raises(TypeCheckError, match="mask"):  # a float mask
+        plot_bev(labels, grid=GRID, mask=torch.ones(GRID.shape))
+
+
+def test_compare_bev_with_a_mask_names_the_grey_in_its_legend(mpl: object) -> None:
+    labels = scene()
+    mask = torch.zeros(GRID.shape, dtype=torch.bool)
+    mask[10:30, 10:30] = True
+    fig = compare_bev(labels, labels, grid=GRID, mask=mask)
+    names = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert names[-1] == "not scored"
+    assert all(len(ax.collections) == 1 for ax in fig.axes)
+    plain = compare_bev(labels, labels, grid=GRID)
+    assert "not scored" not in [t.get_text() for t in plain.legends[0].get_texts()]
 
 
 def test_plot_bev_inputs_numpy_2d_existing_axes_and_device(
@@ -254,6 +298,7 @@ def test_plot_bev_bad_inputs(mpl: object) -> None:
         plot_bev(torch.zeros(4, 4, 3, dtype=torch.long), grid=GRID)
 
 
+@pytest.mark.slow
 def test_plot_occupancy_3d_writes_a_png_in_the_palette(mpl: object, tmp_path: Path) -> None:
     ax = plot_occupancy_3d(scene(), grid=GRID, title="3d")
     rgb = read_png(save_figure(ax.figure, tmp_path / "occ.png"))
@@ -297,6 +342,7 @@ def test_plot_occupancy_3d_bad_inputs(mpl: object) -> None:
         plot_occupancy_3d(torch.full((2, 2, 2), -1))
 
 
+@pytest.mark.slow
 def test_compare_bev_side_by_side(mpl: object, tmp_path: Path) -> None:
     gt = scene()
     pred = gt.clone()
@@ -324,6 +370,7 @@ def test_compare_bev_bad_inputs(mpl: object) -> None:
         compare_bev(scene() + 1, scene())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [np.uint8, np.int8, np.int16, np.int32, np.int64])
 def test_plots_do_not_depend_on_the_label_dtype(mpl: object, dtype: type) -> None:
     labels = scene()[:10, :8, :4].numpy()
@@ -349,6 +396,7 @@ def test_sentinel_labels_are_refused_naming_the_argument(mpl: object) -> None:
             camera_panels(semantics=bad)
 
 
+@pytest.mark.slow
 def test_camera_panels_rows_columns_and_colours(mpl: object, tmp_path: Path) -> None:
     views, height, width = 2, 12, 16
     images = torch.zeros(views, 3, height, width, dtype=torch.uint8)
@@ -373,6 +421,7 @@ def test_camera_panels_rows_columns_and_colours(mpl: object, tmp_path: Path) -> 
     assert legend_names == [CLASS_NAMES[c] for c in (CAR, DRIVEABLE, VEGETATION)]
 
 
+@pytest.mark.slow
 def test_camera_panels_any_subset_of_rows(mpl: object, tmp_path: Path) -> None:
     depth_only = camera_panels(depth=np.random.default_rng(0).uniform(1, 40, (3, 8, 8)))
     assert len(depth_only.axes) == 3 + 1

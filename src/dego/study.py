@@ -184,7 +184,7 @@ def run_study(
     """Fit and score every (seed, budget, variant) of ``config`` on ``device`` (the clip
     and the fits live there, as with ``dego demo --device``).
     ``lifted-labels`` is not fitted: each frame's pseudo labels lifted to 3D (the same
-    for every budget)."""
+    for every budget). ``progress`` gets one line per run, ``lifted-labels`` included."""
     runs = []
     for seed in config.seeds:
         scene = SyntheticScene(seed, num_frames=config.frames, frame_dt=DEMO_FRAME_DT)
@@ -198,6 +198,11 @@ def run_study(
                     scores = _study_scores(lifted)
                     empty = dict.fromkeys(MASK_METRICS, math.nan)
                     runs.append(StudyRun(seed, budget, variant, scores, empty, math.nan, 0.0))
+                    if progress is not None:
+                        progress(
+                            f"seed {seed} budget {budget} {variant} (no fit): articulated "
+                            f"t!=0 {scores['articulated t!=0']:.1f}"
+                        )
                     continue
                 fit_config = FitConfig(
                     iterations=config.iterations,
@@ -351,6 +356,7 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
             "the means are single draws, not comparisons.",
         ]
     payload: dict = {
+        "units": {"scores": "percent", "mask": "mask values and ROC-AUC in [0, 1]"},
         "settings": dataclasses.asdict(config),
         "runs": [dataclasses.asdict(r) for r in runs],
         "summary": {},
@@ -359,7 +365,12 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
     for budget, variants in summary.items():
         lines += ["", f"## {budget} Gaussians", ""]
         lines += _interval_table(variants, METRICS)
-        lines += ["", "Rigidity mask (1 = nonrigid) on the Gaussians of each kind of agent:", ""]
+        lines += [
+            "",
+            "Rigidity mask (1 = nonrigid) on the Gaussians of each kind of agent: mask means "
+            "and ROC-AUC in [0, 1], not percent:",
+            "",
+        ]
         masked = {v: s for v, s in variants.items() if v.startswith("decoupled")}
         if masked:
             lines += _interval_table(masked, (*MASK_METRICS, "Gaussians per articulated agent"))

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 import torch
-from jaxtyping import Float, Integer, UInt8
+from jaxtyping import Bool, Float, Integer, UInt8
 from torch import Tensor
 
 from dego._checks import check_int, check_positive
@@ -49,6 +49,8 @@ else:  # matplotlib is optional and imported inside the functions; the run-time 
 
 RGB = tuple[int, int, int]
 WHITE: RGB = (255, 255, 255)
+UNSCORED_RGBA = (0.45, 0.45, 0.45, 0.55)
+"""The grey veil :func:`plot_bev` lays over columns outside its ``mask`` (RGBA, 0-1)."""
 
 _INSTALL_HINT = (
     'dego.viz needs matplotlib, an optional dependency: pip install "dego-occupancy[viz]" '
@@ -234,6 +236,7 @@ def add_class_legend(
     | None = None,
     *,
     free_label: int = FREE_LABEL,
+    unscored: bool = False,
     **legend_kwargs: Any,
 ) -> Legend:
     """Add a legend of class names with their palette colours to a figure or axes.
@@ -246,6 +249,8 @@ def add_class_legend(
             a sequence of ints: those classes, in that order (``free_label`` included if
             given).
         free_label: the empty-space label skipped when ``classes`` is a label array.
+        unscored: add an entry for the greyed columns outside the scored region (what
+            :func:`plot_bev` draws for its ``mask``).
         **legend_kwargs: passed to ``legend(...)``, overriding the defaults
             (e.g. ``loc``, ``ncols``, ``fontsize``).
 
@@ -275,6 +280,10 @@ def add_class_legend(
         )
         for c in chosen
     ]
+    if unscored:
+        handles.append(
+            Patch(facecolor=UNSCORED_RGBA, edgecolor="black", linewidth=0.8, label="not scored")
+        )
     if isinstance(target, FigureBase):
         engine = target.get_layout_engine()
         defaults: dict[str, Any] = {
@@ -313,6 +322,11 @@ def plot_bev(
     title: str | None = None,
     free_label: int = FREE_LABEL,
     free_color: RGB = WHITE,
+    mask: Bool[Tensor, "X Y Z"]
+    | Bool[np.ndarray, "X Y Z"]
+    | Bool[Tensor, "X Y"]
+    | Bool[np.ndarray, "X Y"]
+    | None = None,
 ) -> Axes:
     """Draw a bird's-eye view of a label grid: +x (forward) up, +y (left) to the left.
 
@@ -325,6 +339,9 @@ def plot_bev(
         title: axes title.
         free_label: the empty-space label; drawn in ``free_color`` (white).
         free_color: RGB (0-255) of free columns.
+        mask: the scored voxels (e.g. Occ3D's ``mask_camera``), ``(X, Y, Z)`` or an
+            ``(X, Y)`` map; columns without a scored voxel are greyed
+            (:data:`UNSCORED_RGBA`) and the scored region is outlined in black.
 
     Returns:
         The axes; save with ``save_figure(ax.figure, "bev.png")``.
@@ -339,12 +356,38 @@ def plot_bev(
     image = np.ascontiguousarray(rgb[::-1, ::-1])  # row 0 = highest x, column 0 = highest y
     if ax is None:
         ax = new_figure((5.0, 5.0)).add_subplot()
-    ax.imshow(image, extent=(y_hi, y_lo, x_lo, x_hi), origin="upper", interpolation="nearest")
+    extent = (y_hi, y_lo, x_lo, x_hi)
+    ax.imshow(image, extent=extent, origin="upper", interpolation="nearest")
+    if mask is not None:
+        _veil_unscored(ax, _bev_mask(mask), extent)
     ax.set_xlabel(f"y [{unit}] (left)")
     ax.set_ylabel(f"x [{unit}] (forward)")
     if title is not None:
         ax.set_title(title)
     return ax
+
+
+def _bev_mask(mask: Tensor | np.ndarray) -> np.ndarray:
+    """``(X, Y)`` bool: the columns holding a scored voxel of ``mask`` (its shape is the
+    labels', checked by the annotations)."""
+    scored = torch.as_tensor(mask).cpu()
+    return (scored.any(dim=-1) if scored.ndim == 3 else scored).numpy()
+
+
+def _veil_unscored(ax: Axes, scored: np.ndarray, extent: tuple[float, float, float, float]) -> None:
+    """Grey the unscored columns and outline the scored region (image orientation as in
+    :func:`plot_bev`: row 0 = highest x, column 0 = highest y)."""
+    shown = np.ascontiguousarray(scored[::-1, ::-1])
+    veil = np.zeros((*shown.shape, 4))
+    veil[~shown] = UNSCORED_RGBA
+    ax.imshow(veil, extent=extent, origin="upper", interpolation="nearest")
+    if shown.any() and not shown.all():
+        (y_hi, y_lo, x_lo, x_hi) = extent
+        rows, cols = shown.shape
+        # cell centres, in the same orientation as the image
+        xs = np.linspace(x_hi, x_lo, rows, endpoint=False) - (x_hi - x_lo) / rows / 2
+        ys = np.linspace(y_hi, y_lo, cols, endpoint=False) - (y_hi - y_lo) / cols / 2
+        ax.contour(ys, xs, shown.astype(float), levels=[0.5], colors="black", linewidths=0.8)
 
 
 @typechecked
@@ -466,6 +509,11 @@ def compare_bev(
     titles: tuple[str, str] = ("prediction", "ground truth"),
     legend: bool = True,
     free_label: int = FREE_LABEL,
+    mask: Bool[Tensor, "X Y Z"]
+    | Bool[np.ndarray, "X Y Z"]
+    | Bool[Tensor, "X Y"]
+    | Bool[np.ndarray, "X Y"]
+    | None = None,
 ) -> Figure:
     """Prediction and ground truth side by side as BEV pictures (see :func:`plot_bev`).
 
@@ -476,6 +524,8 @@ def compare_bev(
         titles: the two panel titles.
         legend: add a legend of the classes visible in either picture.
         free_label: the empty-space label.
+        mask: the scored voxels, greyed outside in both panels (see :func:`plot_bev`);
+            the legend then names the grey.
 
     Returns:
         A new Figure with two axes; save with :func:`save_figure`.
@@ -490,13 +540,15 @@ def compare_bev(
         index = _label_tensor(name, labels).cpu()
         maps.append(bev_labels(index, free_label=free_label) if index.ndim == 3 else index)
     # Room for the legend's rows (up to 6 names per row) below the square panels.
-    rows = math.ceil(len(_present_classes(torch.cat([m.flatten() for m in maps]), free_label)) / 6)
+    entries = len(_present_classes(torch.cat([m.flatten() for m in maps]), free_label))
+    rows = math.ceil((entries + (mask is not None)) / 6)
     fig = new_figure((10.0, 5.0 + (0.25 + 0.3 * rows if legend and rows else 0.0)))
     axes = fig.subplots(1, 2, sharex=True, sharey=True)
     for ax, bev, title in zip(axes, maps, titles, strict=True):
-        plot_bev(bev, grid=grid, ax=ax, title=title, free_label=free_label)
+        plot_bev(bev, grid=grid, ax=ax, title=title, free_label=free_label, mask=mask)
     if legend:
-        add_class_legend(fig, torch.cat([m.flatten() for m in maps]), free_label=free_label)
+        labels = torch.cat([m.flatten() for m in maps])
+        add_class_legend(fig, labels, free_label=free_label, unscored=mask is not None)
     return fig
 
 

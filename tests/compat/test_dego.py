@@ -169,6 +169,7 @@ def test_min_density_and_knobs() -> None:
     assert bool((none == 1).all())
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None)
 @given(
     st.integers(0, 2**31 - 1),

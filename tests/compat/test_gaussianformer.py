@@ -307,6 +307,7 @@ def test_bad_options_name_the_argument(kwargs: dict[str, Any], name: str) -> Non
         aggregate_gf1(**one(), grid=GRID, **kwargs)
 
 
+@pytest.mark.slow
 def test_gradcheck_float64() -> None:
     x = prediction(1, 2, 2, seed=14, extent=1.0)
     x["opacities"] = x["opacities"] * 0.8 + 0.1

@@ -92,6 +92,7 @@ def call(t: dict[str, Tensor], **kwargs: Any) -> tuple[Tensor, Tensor, dict]:
     )  # fmt: skip
 
 
+@pytest.mark.slow
 @settings(max_examples=40)
 @given(
     batch=st.sampled_from([(), (2,), (2, 1)]),

@@ -335,6 +335,7 @@ def test_intersect_matches_brute_force(chunk, monkeypatch) -> None:
     assert int((t == 0).sum()) > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("block", [1, 3, 32, 1000])
 @pytest.mark.parametrize("chunk", [None, 40])
 def test_intersect_ray_blocks_match_brute_force(block, chunk, monkeypatch) -> None:

@@ -189,6 +189,7 @@ FIELDS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("size", "offset"), [(DEFAULT_SIZE, 0), (CUSTOM_SIZE, 1)], ids=["default", "custom"]
 )
@@ -220,6 +221,7 @@ def test_frame_fields(size, offset) -> None:
     torch.testing.assert_close(sky, torch.tensor([0.62, 0.78, 0.95]).expand_as(sky))
 
 
+@pytest.mark.slow
 def test_image_size_does_not_change_the_scene() -> None:
     default, custom = frame(1), frame(1, image_size=CUSTOM_SIZE)
     for name in (
@@ -250,6 +252,7 @@ def test_intrinsics_scale_with_image_size(size) -> None:
     torch.testing.assert_close(k, base * scale)  # rows scale with the image axes
 
 
+@pytest.mark.slow
 def test_frame_intrinsics_are_the_scenes() -> None:
     assert torch.equal(frame(0).intrinsics, scene().intrinsics().float())
     assert torch.equal(
@@ -375,6 +378,7 @@ def test_boundary_arguments_are_accepted() -> None:
     torch.testing.assert_close(s.ego_pose(3.0), torch.eye(4, dtype=torch.float64))
 
 
+@pytest.mark.slow
 def test_ego_pose_and_frame_times() -> None:
     s = SyntheticScene(SEED, num_frames=3, frame_dt=0.25, ego_speed=2.0, image_size=TINY_SIZE)
     pose = s.ego_pose(1.5)
@@ -389,6 +393,7 @@ def test_ego_pose_and_frame_times() -> None:
     assert torch.equal(frames[2].occupancy, s.frame(1).occupancy)
 
 
+@pytest.mark.slow
 def test_custom_grid_is_a_crop_of_the_default() -> None:
     grid = VoxelGrid((-20.0, -20.0, -1.0), (20.0, 20.0, 5.4), 0.4)
     f = SyntheticScene(SEED, grid=grid, image_size=TINY_SIZE).frame(1)
@@ -417,6 +422,7 @@ def assert_frames_equal(a: SyntheticFrame, b: SyntheticFrame) -> None:
         assert torch.equal(getattr(a, name), getattr(b, name)), name
 
 
+@pytest.mark.slow
 def test_same_seed_same_frames() -> None:
     first = SyntheticScene(5, image_size=SMALL_SIZE)
     second = SyntheticScene(5, image_size=SMALL_SIZE)
@@ -430,6 +436,7 @@ def test_same_seed_same_frames() -> None:
             assert torch.equal(getattr(a, field), getattr(b, field))
 
 
+@pytest.mark.slow
 def test_different_seeds_differ() -> None:
     a = SyntheticScene(5, image_size=SMALL_SIZE).frame(0)
     b = SyntheticScene(6, image_size=SMALL_SIZE).frame(0)
@@ -440,6 +447,7 @@ def test_different_seeds_differ() -> None:
 
 
 # -- class coverage ---------------------------------------------------------------------------
+@pytest.mark.slow
 def test_every_class_in_the_default_scene() -> None:
     for offset in (0, 1):
         present = set(frame(offset).occupancy.unique().tolist())
@@ -448,18 +456,21 @@ def test_every_class_in_the_default_scene() -> None:
     assert int(counts[:17].min()) >= 5  # every class is more than a stray voxel
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3, 42])
 def test_every_class_in_other_seeds(seed: int) -> None:
     present = set(frame(0, seed, image_size=TINY_SIZE).occupancy.unique().tolist())
     assert present == set(range(18)), sorted(set(range(18)) - present)
 
 
+@pytest.mark.slow
 def test_every_class_is_rendered() -> None:
     seen = set(frame(0).semantics.unique().tolist()) | set(frame(1).semantics.unique().tolist())
     # small or distant things may fall between pixels at 64 x 176; the big ones do not
     assert {3, 4, 7, 10, 11, 13, 14, 15, 16, FREE} <= seen
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "seed",
     [
@@ -488,6 +499,7 @@ def test_no_solid_contains_a_sensor(seed: int) -> None:
 
 
 # -- rendering vs the ground-truth grid -------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [0, 1])
 def test_rendered_semantics_agree_with_the_grid(offset: int) -> None:
     f, h = frame(offset), hits(offset)
@@ -506,6 +518,7 @@ def test_rendered_semantics_agree_with_the_grid(offset: int) -> None:
     assert h.near[loose].float().mean() >= 0.95
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [0, 1])
 def test_first_hit_distance_matches_rendered_depth(offset: int) -> None:
     f, h = frame(offset), hits(offset)
@@ -575,6 +588,7 @@ def test_camera_mask(offset: int) -> None:
     assert h.hit[in_grid_range(h, f)].float().mean() >= 0.995
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [0, 1])
 def test_lidar_mask(offset: int) -> None:
     s, f = scene(), frame(offset)
@@ -611,6 +625,7 @@ def test_masks_stop_at_the_first_occupied_voxel(offset: int) -> None:
 
 
 # -- camera geometry --------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [0, 1])
 def test_world_to_cam_round_trips_rendered_points(offset: int) -> None:
     """Back-project every hit pixel with its depth into the world (the reference ego frame):
@@ -853,6 +868,7 @@ def test_depth_noise() -> None:
     assert float((f.depth - clean.depth)[near].abs().max()) > 0.1
 
 
+@pytest.mark.slow
 def test_noise_is_deterministic() -> None:
     again = SyntheticScene(SEED, image_size=CUSTOM_SIZE, label_noise=0.5, depth_noise=0.05).frame(1)
     assert_frames_equal(noisy(), again)
@@ -882,6 +898,7 @@ AGENT_LABELS = torch.tensor(sorted({int(v) for v in KIND_LABELS.values()}))
 GROUND_LABELS = torch.tensor(GROUND)
 
 
+@pytest.mark.slow
 @settings(max_examples=15)
 @given(st.integers(-(2**31), 2**31 - 1), st.floats(-5.0, 5.0))
 def test_agents_fields_and_poses(seed: int, time: float) -> None:
@@ -952,6 +969,7 @@ def solid_instances(s: SyntheticScene, time: float) -> torch.Tensor:
     return torch.cat(ids)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("time", [-1.0, 0.0, 0.37, 2.5])
 def test_primitives_are_static_plus_placed_agent_shapes(time: float) -> None:
     s = scene()
@@ -979,6 +997,7 @@ def frame_of(seed: int, offset: int, size) -> SyntheticFrame:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "offset", "size"), FRAMES)
 def test_grid_rebuilt_from_public_data(seed: int, offset: int, size) -> None:
     """The static solids and the agents' shapes, placed with the frame's agent poses and
@@ -995,6 +1014,7 @@ def test_grid_rebuilt_from_public_data(seed: int, offset: int, size) -> None:
     assert torch.equal(rebuilt, f.instances)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "offset", "size"), FRAMES)
 def test_instances_agree_with_occupancy(seed: int, offset: int, size) -> None:
     s, f = scene(seed, image_size=size), frame_of(seed, offset, size)
@@ -1013,6 +1033,7 @@ def test_instances_agree_with_occupancy(seed: int, offset: int, size) -> None:
             assert int(counts[a.instance_id]) >= 3, (a.kind, x, y)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "offset", "size"), FRAMES)
 def test_instance_pixels_agree_with_semantics(seed: int, offset: int, size) -> None:
     s, f = scene(seed, image_size=size), frame_of(seed, offset, size)
@@ -1101,6 +1122,7 @@ def assert_riders_clear(s: SyntheticScene, time: float) -> None:
         assert bool((d > 0).all()), (agent.kind, time)  # off the sidewalks
 
 
+@pytest.mark.slow
 @settings(max_examples=5)
 @given(st.integers(0, 2**31 - 1))
 def test_riders_ride_on_the_road_clear_of_everything(seed: int) -> None:

@@ -443,6 +443,7 @@ def test_gradients_reach_every_parameter(preset: str) -> None:
     } == set(module.heads)
 
 
+@pytest.mark.slow
 def test_training_separates_rigid_from_nonrigid_gaussians() -> None:
     """Half the Gaussians translate with t, half grow (s exp(t)) in place: m learns which."""
     dtype, n, c = torch.float64, 16, 8
@@ -556,6 +557,7 @@ def test_inputs_of_another_dtype_than_the_module_are_rejected() -> None:
         module(canonical, features, times_tensor())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(BAD_INPUTS))
 @pytest.mark.parametrize("preset", PRESETS)
 def test_bad_input(case: str, preset: str) -> None:
@@ -633,6 +635,7 @@ def test_deformation_loss_rejects_other_types() -> None:
 # ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @settings(max_examples=12)
 @given(
     st.integers(0, 2**16),
@@ -737,6 +740,7 @@ def test_devices_dtypes_and_backward(device: torch.device, dtype: torch.dtype, p
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
 def test_gradcheck(preset: str) -> None:
     module = make_module(preset, hidden_dim=8, head_hidden=8, time_dim=4, depth=2)

@@ -546,6 +546,7 @@ def test_with_canonical_appends_the_official_current_frame() -> None:
         full.with_canonical(canonical)
 
 
+@pytest.mark.slow
 @settings(max_examples=10, deadline=None)
 @given(
     b=st.integers(1, 3),

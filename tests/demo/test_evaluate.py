@@ -128,6 +128,7 @@ def test_transformed_is_differentiable() -> None:
 # -- the clip in 4D -------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_clip_keeps_every_frame(clip: DemoClip) -> None:
     t = clip.num_frames
     assert clip.occupancy.shape == clip.mask_camera.shape == clip.instances.shape
@@ -170,6 +171,7 @@ def test_dynamic_regions_cover_the_moving_agents(clip: DemoClip) -> None:
     assert dynamic_regions(clip, clip.reference)["articulated"].any()
 
 
+@pytest.mark.slow
 def test_ground_truth_scores_perfectly_and_empty_scores_zero(clip: DemoClip) -> None:
     score = score_clip(clip.occupancy, clip)
     row = score.row()
@@ -192,6 +194,7 @@ def test_dynamic_counts_add_and_iou() -> None:
     assert math.isnan(DynamicCounts().iou)
 
 
+@pytest.mark.slow
 def test_lifted_labels_are_a_high_ceiling(clip: DemoClip) -> None:
     lifted = lift_labels(clip, clip.reference)
     assert lifted.batch_shape == (1,)
@@ -207,6 +210,7 @@ def test_lifted_labels_are_a_high_ceiling(clip: DemoClip) -> None:
 # -- variants and initialisation --------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_static_variant_has_no_deformation(clip: DemoClip) -> None:
     result = fit_scene(clip, "static", FitConfig(iterations=2, num_gaussians=300))
     assert result.deformation is None

@@ -89,6 +89,7 @@ def test_frame_offsets_reject_bad_input() -> None:
         module(canonical(5), torch.zeros(1, 5, 0), torch.tensor([0.0]))
 
 
+@pytest.mark.slow
 def test_free_offsets_have_no_regulariser_and_learn(clip: DemoClip) -> None:
     module = free_offsets(clip, 6)
     assert module.offsets.shape == (clip.num_frames, 6, 3) and not module.offsets.any()
@@ -146,6 +147,7 @@ def test_true_motion_needs_the_synthetic_scene(scene: SyntheticScene, clip: Demo
 # -- variants -----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_reference_variants_fit_and_single_frame_sees_only_the_reference(
     scene: SyntheticScene, clip: DemoClip, monkeypatch: pytest.MonkeyPatch
 ) -> None:

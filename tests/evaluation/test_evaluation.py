@@ -51,6 +51,7 @@ def assert_same_occupancy(got: dego.OccupancyReport, expected: dego.OccupancyRep
 # ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_every_prediction_format_reads_the_same_labels(tree: dict) -> None:
     for token, fmt in FORMATS.items():
         found = dego.evaluation.find_prediction(tree["pred"], SCENE_OF[token], token)
@@ -84,6 +85,7 @@ def test_ambiguous_and_unknown_archives_are_refused(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_cli_with_rayiou_matches_the_metrics_and_writes_reports(
     tree: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -100,8 +102,8 @@ def test_cli_with_rayiou_matches_the_metrics_and_writes_reports(
     assert err == ""  # --quiet: no progress
     expected = direct(tree, rayiou=True)
     data = json.loads(json_path.read_text())
-    # JSON: fractions, protocols, origin source, sample and ray counts, version
-    assert data["units"] == "fraction" and data["complete"] is True
+    # JSON: percent, protocols, origin source, sample and ray counts, version
+    assert data["units"] == "percent" and data["complete"] is True
     assert data["dego_version"] == dego.__version__
     assert data["protocols"] == ["occ3d", "weak"]
     assert data["samples"] == data["samples_total"] == 6
@@ -116,10 +118,10 @@ def test_cli_with_rayiou_matches_the_metrics_and_writes_reports(
     }
     for name in ("occ3d", "weak"):
         report = expected[name].compute()
-        assert data[name]["miou"] == report.miou and data[name]["iou"] == report.iou
+        assert data[name]["miou"] == 100 * report.miou and data[name]["iou"] == 100 * report.iou
         assert data["counts"][name]["confusion"] == expected[name].confusion.tolist()
     ray = expected["rayiou"].compute()
-    assert data["rayiou"]["rayiou"] == ray.rayiou
+    assert data["rayiou"]["rayiou"] == 100 * ray.rayiou
     assert data["counts"]["rayiou"]["true_positives"] == expected["rayiou"].true_positives.tolist()
     assert data["missing"] == {"policy": "error", "tokens": []} and data["failed"] == []
     # stdout: percent with 2 decimals everywhere, stated
@@ -181,7 +183,7 @@ def test_classes_and_single_protocol(
     data = json.loads(json_path.read_text())
     assert data["protocols"] == ["occ3d"] and "weak" not in data
     assert data["classes"] == list(expected.evaluated_classes)
-    assert data["occ3d"]["miou"] == expected.miou
+    assert data["occ3d"]["miou"] == 100 * expected.miou
     assert "classes averaged (--classes): 1, 2" in out and "mIoU over 15 classes" in out
     code, _, err = run_cli([*args, "--classes", "3,17"], capsys)
     assert code == 2 and err.startswith("error: classes:")
@@ -210,6 +212,7 @@ def test_reports_are_written_whole_or_not_at_all(
     assert sorted(p.name for p in out.iterdir()) == ["r.json", "r.md"]
 
 
+@pytest.mark.slow
 def test_python_m_dego_eval(tree: dict, tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     command = [sys.executable, "-m", "dego", "eval", "--gt", str(tree["gt"])]
@@ -274,6 +277,7 @@ BAD_FILES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(BAD_FILES))
 def test_bad_prediction_is_collected_and_the_others_scored(
     case: str, tree: dict, pred_copy: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]

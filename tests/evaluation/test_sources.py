@@ -101,6 +101,7 @@ def direct(nus: dict[str, Any], tokens=None, *, origins=None) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_nuscenes_tables_give_scene_origins_and_agree_with_infos(
     nus: dict[str, Any], nus_report: dego.EvaluationReport
 ) -> None:
@@ -261,8 +262,9 @@ def test_report_states_what_was_scored(
     assert md.startswith("# dego eval\n")
     assert f"dego {dego.__version__} eval: 5 of 5 samples scored" in md
     assert "protocols: occ3d, weak" in md
-    assert "## Voxel IoU, occ3d protocol" in md and "## Voxel IoU, weak protocol" in md
-    assert f"RayIoU origins: {source}" in md and f"## RayIoU (origins {source})" in md
+    assert "## Voxel IoU (percent), occ3d protocol" in md
+    assert "## Voxel IoU (percent), weak protocol" in md
+    assert f"RayIoU origins: {source}" in md and f"## RayIoU (percent), origins {source}" in md
     assert rays in md
     assert "percentages with 2 decimals" in md
     assert report.rayiou is not None
@@ -276,14 +278,14 @@ def test_report_states_what_was_scored(
     assert rays in text and str(report) == text
     for name in ("occ3d", "weak"):
         assert f"{report.protocols[name].miou * 100:.2f}" in text
-    # JSON: fractions, NaN (a class absent from GT and predictions) -> null
+    # JSON: percent, NaN (a class absent from GT and predictions) -> null
     occ = report.protocols["occ3d"]
     absent = [c for c in occ.evaluated_classes if math.isnan(float(occ.per_class[c]))]
     assert absent, "the fixture should leave some class out of GT and predictions"
     data = json.loads(report.to_json(), parse_constant=_no_nan)
-    assert data["units"] == "fraction" and data["dego_version"] == dego.__version__
+    assert data["units"] == "percent" and data["dego_version"] == dego.__version__
     assert data["origins"]["source"] == source and data["samples"] == 5
-    assert 0.0 <= data["occ3d"]["miou"] <= 1.0
+    assert data["occ3d"]["miou"] == 100 * occ.miou and 0.0 <= data["occ3d"]["miou"] <= 100.0
     for c in absent:
         name = occ.class_names[c]
         assert data["occ3d"]["per_class"][name] is None, name

@@ -56,3 +56,10 @@ def source_params(
             )
         ]
     return [pytest.param(v, id=ids(v) if ids else None) for v in values(ROOT)]
+
+
+SLOW_MARKER = (
+    "slow: a case over ~0.3 s (subprocess, example, notebook, fit, compile, big gradcheck); "
+    'left out of the quick run `pytest -m "not slow"`, part of the default run and of CI'
+)
+"""The ``slow`` marker's description, as pyproject.toml registers it (a test checks)."""

@@ -193,6 +193,7 @@ def test_identical_prediction_scores_one_for_every_present_class() -> None:
 # ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @settings(max_examples=12)
 @given(
     st.lists(st.integers(0, 10_000), min_size=1, max_size=2),
@@ -347,12 +348,15 @@ def test_report_dict_and_table() -> None:
     assert [as_dict[f"rayiou@{t}"] for t in ("1", "2", "4")] == list(report.at)
     assert "rayiou@1/car" in as_dict and "rayiou@4/others" in as_dict
     assert not any(k.endswith("/free") for k in as_dict)
-    text = report.table()
-    assert "car" in text and "MEAN" in text and "RayIoU" in text and str(report) == text
-    assert f"RayIoU {report.rayiou:.3f} (mean over 17 classes)" in text
-    percent = report.table(percent=True)
+    percent = report.table()  # percent like every dego table, and says so
+    assert "car" in percent and "MEAN" in percent and str(report) == percent
+    assert percent.splitlines()[0].startswith("RayIoU in percent")
     assert f"RayIoU {report.rayiou * 100:.2f} (mean over 17 classes)" in percent
     assert f"{report.at[0] * 100:.2f}" in percent.splitlines()[-2]
+    fractions = report.table(percent=False)  # SparseOcc's printout
+    assert fractions.splitlines()[0].startswith("RayIoU in fractions")
+    assert f"RayIoU {report.rayiou:.3f} (mean over 17 classes)" in fractions
+    assert report.as_dict(percent=True)["rayiou"] == round(100 * report.rayiou, 2)
     assert report.rayiou == pytest.approx(float(np.mean(report.at)))
 
 
@@ -393,6 +397,7 @@ def test_origins_outside_the_grid_are_allowed() -> None:
     metric.update(pred, gt, np.array([[100.0, -300.0, 50.0], [-4.5, 0.0, 0.0]]))
 
 
+@pytest.mark.slow
 def test_bad_update_input() -> None:
     metric = RayIoU(grid=SMALL_GRID, rays=SMALL_RAYS)
     pred, gt, origins = random_scene(9)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -94,6 +95,7 @@ def test_custom_backward_equals_autograd(seed: int, transmittance_min: float) ->
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10, msg=name)
 
 
+@pytest.mark.slow
 def test_gradcheck_chunk() -> None:
     rules = CompositeRules(0.999, 1 / 255, 1e-4)
     t, fin, mean, conic, opacity, color, origins = random_chunk(7)

@@ -52,6 +52,7 @@ def per_camera(scene: Scene, seed: int) -> Scene:
 # ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @settings(max_examples=25)
 @given(scenes(), OPTIONS, st.booleans())
 def test_options_match_dense_reference(scene: Scene, options: dict, cameras: bool) -> None:
@@ -62,6 +63,7 @@ def test_options_match_dense_reference(scene: Scene, options: dict, cameras: boo
     assert_outputs_close(out, render_reference(scene), rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 @settings(max_examples=12)
 @given(scenes(max_n=12), OPTIONS, st.booleans())
 def test_option_gradients_match_dense_reference(scene: Scene, options: dict, cameras: bool) -> None:

@@ -68,6 +68,7 @@ def test_the_gsplat_adapter_rejects_them_too() -> None:
 # ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @settings(max_examples=40)
 @given(
     scale=st.sampled_from([1e-12, 1e-6, 1.0, 1e6, 1e15]),

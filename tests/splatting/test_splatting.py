@@ -71,6 +71,7 @@ def test_gradients_match_dense_reference(scene: Scene) -> None:
         torch.testing.assert_close(grads[name], expected[name], rtol=1e-4, atol=1e-4, msg=name)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(3))
 def test_dense_scene_with_termination_and_truncation_matches_reference(seed: int) -> None:
     image_size = (32, 48)
@@ -121,6 +122,7 @@ def test_float32_matches_float64_reference(seed: int) -> None:
     assert torch.equal(out.radii.long(), expected.radii)
 
 
+@pytest.mark.slow
 @settings(max_examples=15)
 @given(scenes(max_n=20), st.sampled_from([1, 3]), st.sampled_from([64, 300]))
 def test_chunking_and_pair_limits_do_not_change_the_result(
@@ -338,6 +340,7 @@ def test_weights_form_a_partition_of_alpha(scene: Scene, seed: int) -> None:
         assert float(depth.max()) <= float(z[b_, v_].nan_to_num(-torch.inf).max()) + 1e-9
 
 
+@pytest.mark.slow
 @settings(max_examples=15)
 @given(scenes(), st.integers(0, 2**31 - 1))
 def test_linear_in_features(scene: Scene, seed: int) -> None:
@@ -369,6 +372,7 @@ def test_order_of_the_gaussians_does_not_matter(scene: Scene, seed: int) -> None
     assert torch.equal(out.radii, expected.radii[..., perm])
 
 
+@pytest.mark.slow
 @settings(max_examples=12)
 @given(scenes(max_n=15, culling=False), st.integers(0, 2**31 - 1))
 def test_invisible_gaussians_change_nothing_and_get_no_gradient(scene: Scene, seed: int) -> None:
@@ -432,6 +436,7 @@ def test_several_cameras_equal_single_camera_renders(scene: Scene) -> None:
         assert torch.equal(out.radii[:, v : v + 1], one.radii)
 
 
+@pytest.mark.slow
 @settings(max_examples=10)
 @given(scenes(max_batch=3, max_views=1))
 def test_batch_equals_single_renders(scene: Scene) -> None:
@@ -496,6 +501,7 @@ EXTREME_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(EXTREME_CASES))
 def test_gradients_are_finite_in_extreme_cases(case: str, dtype: torch.dtype) -> None:
     image_size = (20, 36)
@@ -539,6 +545,7 @@ def test_gradients_are_finite_in_extreme_cases(case: str, dtype: torch.dtype) ->
             )
 
 
+@pytest.mark.slow
 def test_gradcheck_on_a_tiny_scene() -> None:
     dtype = torch.float64
     # Three large Gaussians well inside an 8x8 image: every pixel sees alpha >> alpha_min,

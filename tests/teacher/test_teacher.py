@@ -233,6 +233,7 @@ def fit_constant_student(projector: str) -> float:
         return float(distillation_loss(constant, features.project(teacher_maps)))
 
 
+@pytest.mark.slow
 def test_collapse_a_constant_student_cannot_match_a_frozen_projector_but_can_a_trainable_one() -> (
     None
 ):

@@ -118,6 +118,7 @@ def test_no_link_is_made_without_grad() -> None:
     assert not out.density.requires_grad and not out.features.requires_grad
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["additive", "probabilistic"])
 def test_unreached_grids_keep_the_autograd_link_under_compile(mode: str) -> None:
     torch._dynamo.reset()

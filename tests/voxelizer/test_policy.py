@@ -204,6 +204,7 @@ EXTREME_SCALES = [1e-30, 1e-12, 1e-6, 1e-3, 0.3, 1e3, 1e6, 1e12, 1e30]
 CUTOFFS = [0.5, 3.0, 1e3, 1e30, 1e300, math.inf]
 
 
+@pytest.mark.slow
 @settings(max_examples=60)
 @given(
     float_dtypes,

@@ -362,6 +362,7 @@ def _tiny_inputs(seed: int) -> tuple[Tensor, ...]:
     return tuple(t.requires_grad_(True) for t in (means, quats, scales, opacities, features))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "options",
     [

@@ -350,6 +350,7 @@ def test_whole_voxel_translation_shifts_the_output(
     )
 
 
+@pytest.mark.slow
 @settings(max_examples=10)
 @given(scenes(), st.sampled_from(range(len(CONFIGS))))
 def test_chunk_size_does_not_change_the_result(gs: GaussianSet, which: int) -> None:
@@ -491,6 +492,7 @@ def _tiny_inputs(seed: int) -> tuple[Tensor, ...]:
     return tuple(t.requires_grad_(True) for t in (means, quats, scales, opacities, features))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["additive", "probabilistic"])
 @pytest.mark.parametrize(
     "neighborhood",

@@ -17,9 +17,12 @@ from jaxtyping import Int
 from torch import Tensor
 
 from dego._atomic import write_bytes
+from dego._units import percent_text
 from dego.classes import FREE_LABEL
+from dego.data.synthetic import CAMERAS
 from dego.demo.clip import DemoClip
 from dego.demo.fit import LOSS_TERMS, FitResult, gaussians_at, render
+from dego.metrics import OccupancyMetrics
 from dego.viz import colorize_labels, compare_bev, new_figure
 
 CAMERA = 0  # CAM_FRONT
@@ -54,20 +57,34 @@ def bev_figure(
     labels: Int[Tensor, "X Y Z"], clip: DemoClip, variant: str, index: int | None = None
 ) -> Any:
     """Top-down prediction next to the ground truth of frame ``index`` (default: the
-    reference frame), in that frame's ego coordinates."""
+    reference frame), in that frame's ego coordinates. Columns outside the camera mask
+    (not scored) are greyed; the prediction's title carries its weak-protocol IoU and
+    mIoU on this frame (the demo table's metrics, for this frame alone)."""
     index = clip.reference if index is None else index
     offset = int(clip.times[index])
+    target, scored = clip.occupancy[index].cpu(), clip.mask_camera[index].cpu()
+    metrics = OccupancyMetrics("weak")
+    metrics.update(labels.cpu(), target, scored)
+    report = metrics.compute()
+    score = f"IoU {percent_text(report.iou)}, mIoU {percent_text(report.miou)} (%, weak)"
     return compare_bev(
         labels.cpu(),
-        clip.occupancy[index].cpu(),
+        target,
         grid=clip.grid,
-        titles=(f"{variant}: prediction, t = {offset:+d}", f"ground truth, t = {offset:+d}"),
+        titles=(
+            f"{variant}: prediction, t = {offset:+d}\n{score}",
+            f"ground truth, t = {offset:+d}\ngrey: outside the camera mask",
+        ),
+        mask=scored,
     )
 
 
 @torch.no_grad()
 def camera_figure(result: FitResult, clip: DemoClip, camera: int = CAMERA) -> Any:
-    """Pseudo labels vs the fitted Gaussians' render, depth and semantics, reference frame."""
+    """Pseudo labels vs the fitted Gaussians' render, depth and semantics, of one camera
+    (default ``CAM_FRONT``) at the reference frame; the figure's title names both."""
+    if not 0 <= camera < len(CAMERAS):
+        raise ValueError(f"camera: expected an index in [0, {len(CAMERAS) - 1}], got {camera!r}")
     index = clip.reference
     gaussians, _ = gaussians_at(result.model, result.deformation, clip, index)
     rendered = render(gaussians, clip, index, torch.tensor([camera]))  # that camera only
@@ -78,7 +95,12 @@ def camera_figure(result: FitResult, clip: DemoClip, camera: int = CAMERA) -> An
     pseudo_depth = clip.depth[index, camera].cpu()
     far = float(pseudo_depth.max().clamp_min(1))
 
-    figure = new_figure((9.0, 3.6))
+    figure = new_figure((9.0, 3.9))
+    figure.suptitle(
+        f"{CAMERAS[camera][0]} (camera {camera}), frame t = {int(clip.times[index]):+d} "
+        f"(the reference frame, {index + 1} of {clip.num_frames})",
+        fontsize=10,
+    )
     axes = figure.subplots(2, 2)
     panels = [
         (pseudo_depth, "pseudo depth", "depth"),

@@ -4,7 +4,7 @@ torchrun ranks through torch.distributed), progress, and reports.
 
     report = dego.evaluate("data/occ3d-nus", "preds", infos="nuscenes_infos_val.pkl")
     print(report.tables())            # percent, 2 decimals
-    Path("report.json").write_text(report.to_json())  # fractions
+    Path("report.json").write_text(report.to_json())  # percent, "units": "percent"
 """
 
 from dego.evaluation.errors import EvaluationSetupError, SampleFailure

@@ -30,8 +30,8 @@ a few hundred MB; on a 2-core machine 2 is the fastest setting)."""
 
 DESCRIPTION = (
     "Score Occ3D-nuScenes occupancy predictions on CPU: voxel IoU / mIoU (with InsM, ScnM, "
-    "HCM) under the occ3d and weak protocols, and SparseOcc's RayIoU at 1/2/4 m. Tables are "
-    "printed in percent with 2 decimals; --json holds fractions."
+    "HCM) under the occ3d and weak protocols, and SparseOcc's RayIoU at 1/2/4 m. Every score is "
+    "in percent: tables and --markdown with 2 decimals, --json unrounded."
 )
 EPILOG = (
     "Ray origins (RayIoU), in order of preference: --infos, --nuscenes, --origins. "
@@ -173,7 +173,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         default="cpu",
         help="where the metrics run: cpu, cuda or cuda:N (cpu)",
     )
-    parser.add_argument("--json", type=Path, help="write a JSON report (fractions) here")
+    parser.add_argument("--json", type=Path, help="write a JSON report (percent, unrounded) here")
     parser.add_argument("--markdown", type=Path, help="write a Markdown report (percent) here")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser

@@ -1,42 +1,34 @@
 """EvaluationReport: the scores of one ``dego eval`` run and everything needed to trust them
 (protocols, origin source, sample and ray counts, dego version, missing/failed samples).
 
-Units: :meth:`EvaluationReport.tables` and :meth:`~EvaluationReport.to_markdown` print
-percentages with two decimals for every score (mIoU, IoU, group means, RayIoU);
-:meth:`~EvaluationReport.to_dict` / :meth:`~EvaluationReport.to_json` hold fractions in
-[0, 1] (``null`` for NaN, i.e. a class absent from ground truth and predictions) and say
-so with ``"units": "fraction"``.
+Units: every score a report shows or writes is in percent (mIoU, IoU, group means,
+RayIoU): :meth:`EvaluationReport.tables` and :meth:`~EvaluationReport.to_markdown` print
+two decimals; :meth:`~EvaluationReport.to_dict` / :meth:`~EvaluationReport.to_json` hold
+unrounded percentages (``null`` for NaN, i.e. a class absent from ground truth and
+predictions) and say so with ``"units": "percent"``. The attributes of the
+:class:`~dego.OccupancyReport` / :class:`~dego.RayIoUReport` inside stay fractions.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from collections.abc import Mapping
 from typing import Any
 
 from torch import Tensor
 
 from dego._typing import check_tensor_fields
+from dego._units import GROUP_DISPLAY_NAMES, UNIT, percent_or_none, percent_text
 from dego.evaluation.errors import SampleFailure
 from dego.metrics.rayiou import RayIoUReport
 from dego.metrics.report import OccupancyReport
 
-_GROUP_NAMES = {"insm": "InsM", "scnm": "ScnM", "hcm": "HCM"}
-
-
-def _fraction(value: float) -> float | None:
-    return None if math.isnan(value) else float(value)
-
-
-def _percent(value: float) -> str:
-    return "-" if math.isnan(value) else f"{value * 100:.2f}"
-
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class EvaluationReport:
-    """The result of :func:`dego.evaluate` (scores are fractions, as in the metric reports).
+    """The result of :func:`dego.evaluate` (its metric reports hold fractions; its tables,
+    Markdown and JSON show percent).
 
     Attributes:
         protocols: the :class:`~dego.OccupancyReport` of each voxel protocol scored
@@ -108,10 +100,10 @@ class EvaluationReport:
 
     # -- plain data ---------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready data; scores are fractions in [0, 1] (``None`` for NaN)."""
+        """JSON-ready data; scores in percent, unrounded (``None`` for NaN); counts raw."""
         out: dict[str, Any] = {
             "dego_version": self.version,
-            "units": "fraction",
+            "units": UNIT,
             "complete": self.complete,
             "gt": self.gt,
             "pred": self.pred,
@@ -147,7 +139,7 @@ class EvaluationReport:
         return out
 
     def to_json(self) -> str:
-        """:meth:`to_dict` as indented JSON (fractions, ``"units": "fraction"``)."""
+        """:meth:`to_dict` as indented JSON (percent, ``"units": "percent"``)."""
         return json.dumps(self.to_dict(), indent=2) + "\n"
 
     # -- text -----------------------------------------------------------------------------
@@ -201,7 +193,7 @@ class EvaluationReport:
             lines += ["", f"== voxel IoU, {name} protocol (percent) ==", report.table()]
         if self.rayiou is not None:
             lines += ["", f"== RayIoU (percent), origins {self.origin_source} =="]
-            lines += [self.rayiou.table(percent=True)]
+            lines += [self.rayiou.table()]
         elif self.origin_source is not None:
             lines += ["", "RayIoU: no ray was scored"]
         if not self.protocols:
@@ -221,22 +213,22 @@ class EvaluationReport:
         lines += [f"- {line}" for line in self._summary_lines()]
         lines += ["", "All scores are percentages with 2 decimals."]
         for name, report in self.protocols.items():
-            groups = {_GROUP_NAMES.get(k, k): v for k, v in report.group_means.items()}
+            groups = {GROUP_DISPLAY_NAMES.get(k, k): v for k, v in report.group_means.items()}
             summary = {"IoU": report.iou, **groups, "mIoU": report.miou}
             lines += [
                 "",
-                f"## Voxel IoU, {name} protocol "
+                f"## Voxel IoU (percent), {name} protocol "
                 f"(mIoU over {len(report.evaluated_classes)} classes)",
                 "",
                 "| " + " | ".join(summary) + " |",
                 "|" + "|".join("---:" for _ in summary) + "|",
-                "| " + " | ".join(_percent(v) for v in summary.values()) + " |",
+                "| " + " | ".join(percent_text(v) for v in summary.values()) + " |",
                 "",
                 "| class | IoU |",
                 "|---|---:|",
             ]
             lines += [
-                f"| {report.class_names[c]} | {_percent(float(report.per_class[c]))} |"
+                f"| {report.class_names[c]} | {percent_text(float(report.per_class[c]))} |"
                 for c in report.evaluated_classes
             ]
         if self.rayiou is not None:
@@ -244,17 +236,17 @@ class EvaluationReport:
             heads = [f"@{t:g} m" for t in ray.thresholds]
             lines += [
                 "",
-                f"## RayIoU (origins {self.origin_source})",
+                f"## RayIoU (percent), origins {self.origin_source}",
                 "",
-                f"RayIoU **{_percent(ray.rayiou)}** (mean over {len(ray.class_ids)} classes)",
+                f"RayIoU **{percent_text(ray.rayiou)}** (mean over {len(ray.class_ids)} classes)",
                 "",
                 "| class | " + " | ".join(heads) + " |",
                 "|---|" + "|".join("---:" for _ in heads) + "|",
             ]
             for c in ray.class_ids:
-                cells = [_percent(float(ray.per_class[i, c])) for i in range(len(heads))]
+                cells = [percent_text(float(ray.per_class[i, c])) for i in range(len(heads))]
                 lines.append(f"| {ray.class_names[c]} | " + " | ".join(cells) + " |")
-            lines.append("| **mean** | " + " | ".join(_percent(v) for v in ray.at) + " |")
+            lines.append("| **mean** | " + " | ".join(percent_text(v) for v in ray.at) + " |")
         if self.failed:
             lines += ["", f"## Failed samples ({len(self.failed)})", ""]
             lines += [f"- `{f.token}` ({f.file}): {f.message}" for f in self.failed]
@@ -270,12 +262,12 @@ class EvaluationReport:
 def _occupancy_dict(report: OccupancyReport) -> dict[str, Any]:
     return {
         "protocol": report.protocol,
-        "miou": _fraction(report.miou),
-        "iou": _fraction(report.iou),
-        **{name: _fraction(value) for name, value in report.group_means.items()},
+        "miou": percent_or_none(report.miou),
+        "iou": percent_or_none(report.iou),
+        **{name: percent_or_none(value) for name, value in report.group_means.items()},
         "evaluated_classes": list(report.evaluated_classes),
         "per_class": {
-            report.class_names[c]: _fraction(float(report.per_class[c]))
+            report.class_names[c]: percent_or_none(float(report.per_class[c]))
             for c in report.evaluated_classes
         },
     }
@@ -283,12 +275,14 @@ def _occupancy_dict(report: OccupancyReport) -> dict[str, Any]:
 
 def _rayiou_dict(report: RayIoUReport) -> dict[str, Any]:
     return {
-        "rayiou": _fraction(report.rayiou),
-        "at": {f"{t:g}": _fraction(v) for t, v in zip(report.thresholds, report.at, strict=True)},
+        "rayiou": percent_or_none(report.rayiou),
+        "at": {
+            f"{t:g}": percent_or_none(v) for t, v in zip(report.thresholds, report.at, strict=True)
+        },
         "class_ids": list(report.class_ids),
         "per_class": {
             report.class_names[c]: {
-                f"{t:g}": _fraction(float(report.per_class[i, c]))
+                f"{t:g}": percent_or_none(float(report.per_class[i, c]))
                 for i, t in enumerate(report.thresholds)
             }
             for c in report.class_ids

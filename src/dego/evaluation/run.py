@@ -527,8 +527,9 @@ def evaluate(
         progress: show progress on ``progress_stream`` (stderr).
 
     Returns:
-        An :class:`EvaluationReport` (fractions; its tables print percent). A sample that
-        fails to read or validate is listed in ``report.failed`` and the others are scored.
+        An :class:`EvaluationReport` (its metric reports hold fractions; its tables and
+        JSON show percent). A sample that fails to read or validate is listed in
+        ``report.failed`` and the others are scored.
 
     Raises:
         EvaluationSetupError: (a ``ValueError``) no samples, missing predictions or

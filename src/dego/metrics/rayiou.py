@@ -102,7 +102,8 @@ def lidar_origins(
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class RayIoUReport(_serialization.DictForm):
-    """RayIoU scores (fractions; NaN for classes absent from gt and predictions).
+    """RayIoU scores (fractions; NaN for classes absent from gt and predictions). Printed
+    (:meth:`table`) in percent, like every dego report.
 
     Attributes:
         thresholds: the distance thresholds in metres.
@@ -123,24 +124,35 @@ class RayIoUReport(_serialization.DictForm):
     class_ids: tuple[int, ...]
     class_names: tuple[str, ...]
 
-    def as_dict(self) -> dict[str, float]:
-        """``{"rayiou", "rayiou@<t>", "rayiou@<t>/<class>"}`` for loggers."""
-        out = {"rayiou": self.rayiou}
+    def as_dict(self, *, percent: bool = False) -> dict[str, float]:
+        """``{"rayiou", "rayiou@<t>", "rayiou@<t>/<class>"}`` for loggers.
+
+        Values are fractions (like :meth:`OccupancyReport.as_dict`), or percentages
+        rounded to 2 decimals with ``percent=True``.
+        """
+
+        def fmt(v: float) -> float:
+            return round(v * 100, 2) if percent else v
+
+        out = {"rayiou": fmt(self.rayiou)}
         for i, t in enumerate(self.thresholds):
-            out[f"rayiou@{t:g}"] = self.at[i]
+            out[f"rayiou@{t:g}"] = fmt(self.at[i])
             for c in self.class_ids:
-                out[f"rayiou@{t:g}/{self.class_names[c]}"] = float(self.per_class[i, c])
+                out[f"rayiou@{t:g}/{self.class_names[c]}"] = fmt(float(self.per_class[i, c]))
         return out
 
-    def table(self, percent: bool = False) -> str:
-        """A text table of per-class IoU at every threshold and the means: fractions with
-        3 decimals (SparseOcc's printout), or percent with 2 (``percent=True``)."""
+    def table(self, percent: bool = True) -> str:
+        """A text table of per-class IoU at every threshold and the means, in percent with
+        2 decimals like every dego table (``percent=False``: fractions with 3 decimals,
+        SparseOcc's printout). The first line names the unit; '-' for absent classes."""
 
         def fmt(value: float) -> str:
             return _fmt(value * 100, ".2f") if percent else _fmt(value)
 
+        unit = "percent" if percent else "fractions"
         head = " | ".join(f"{'IoU@' + format(t, 'g'):>7}" for t in self.thresholds)
         lines = [
+            f"RayIoU in {unit}, per class at each distance threshold (m)",
             f"| {'class':<22} | {head} |",
             f"|{'-' * 24}|" + "|".join("-" * 9 for _ in self.thresholds) + "|",
         ]

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from dego import _serialization
 from dego._typing import check_tensor_fields, typechecked
+from dego._units import GROUP_DISPLAY_NAMES, percent_text
 
 
 @typechecked
@@ -30,16 +31,9 @@ def per_class_iou(confusion: Integer[Tensor, "C C"]) -> Float[Tensor, " C"]:
     return tp / (confusion.sum(0) + confusion.sum(1) - tp)
 
 
-_DISPLAY_NAMES = {"insm": "InsM", "scnm": "ScnM", "hcm": "HCM"}
-
-
 def _nanmean(values: Tensor) -> float:
     finite = values[~values.isnan()]
     return float(finite.mean()) if finite.numel() else math.nan
-
-
-def _percent(value: float) -> str:
-    return "-" if math.isnan(value) else f"{value * 100:.2f}"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -153,21 +147,23 @@ class OccupancyReport(_serialization.DictForm):
         return out
 
     def table(self) -> str:
-        """A paper-style text table: percentages with two decimals, '-' for absent classes."""
-        groups = {_DISPLAY_NAMES.get(k, k): v for k, v in self.group_means.items()}
+        """A paper-style text table in percent with two decimals (the first line says so),
+        '-' for absent classes."""
+        groups = {GROUP_DISPLAY_NAMES.get(k, k): v for k, v in self.group_means.items()}
         summary = {"IoU": self.iou, **groups, "mIoU": self.miou}
         lines = [
-            f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes",
+            f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes, "
+            "IoU in percent",
             "| " + " | ".join(f"{k:>6}" for k in summary) + " |",
             "|" + "|".join("-" * 8 for _ in summary) + "|",
-            "| " + " | ".join(f"{_percent(v):>6}" for v in summary.values()) + " |",
+            "| " + " | ".join(f"{percent_text(v):>6}" for v in summary.values()) + " |",
             "",
             f"| {'class':<22} | {'IoU':>6} | groups",
             f"|{'-' * 24}|{'-' * 8}|{'-' * 8}",
         ]
         for label in self.evaluated_classes:
             member_of = ", ".join(g for g, ids in self.groups.items() if label in ids)
-            value = _percent(float(self.per_class[label]))
+            value = percent_text(float(self.per_class[label]))
             lines.append(f"| {self.class_names[label]:<22} | {value:>6} | {member_of}".rstrip())
         return "\n".join(lines)
 
