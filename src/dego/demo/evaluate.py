@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Int
 from torch import Tensor
 
+from dego._units import percent
 from dego.classes import FREE_LABEL, HUMAN_CENTRIC_CLASSES
 from dego.deformation import DecoupledDeformation
 from dego.demo.clip import DemoClip, backproject
@@ -164,10 +165,10 @@ class ClipScore:
         """The demo table's columns, percent (NaN where undefined)."""
         values = dict(self.reference.row())
         others = self.others
-        values["mIoU t!=0"] = 100 * others.miou if others else math.nan
-        values["HCM t!=0"] = 100 * others.hcm if others else math.nan
+        values["mIoU t!=0"] = percent(others.miou) if others else math.nan
+        values["HCM t!=0"] = percent(others.hcm) if others else math.nan
         for name in DYNAMIC_GROUPS:
-            values[f"{name} t!=0"] = 100 * self.dynamic[name]["others"].iou
+            values[f"{name} t!=0"] = percent(self.dynamic[name]["others"].iou)
         return values
 
 

@@ -11,6 +11,7 @@ import torch
 from jaxtyping import Int
 from torch import Tensor
 
+from dego._units import percent
 from dego.demo.clip import DemoClip
 from dego.gaussians import GaussianSet
 from dego.metrics import OccupancyMetrics, OccupancyReport, RayIoU, RayIoUReport
@@ -53,7 +54,7 @@ class VariantScore:
             "HCM": report.hcm,
             "RayIoU": self.rayiou.rayiou,
         }
-        return {name: 100 * value for name, value in values.items()}
+        return {name: percent(value) for name, value in values.items()}
 
 
 @torch.no_grad()

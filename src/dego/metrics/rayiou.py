@@ -22,7 +22,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from dego import _serialization
+from dego import _serialization, _units
 from dego._geometry import rotation_matrices
 from dego._policy import check_finite, check_memory, run_checks
 from dego._typing import check_tensor_fields, typechecked
@@ -132,7 +132,7 @@ class RayIoUReport(_serialization.DictForm):
         """
 
         def fmt(v: float) -> float:
-            return round(v * 100, 2) if percent else v
+            return round(_units.percent(v), 2) if percent else v
 
         out = {"rayiou": fmt(self.rayiou)}
         for i, t in enumerate(self.thresholds):
@@ -147,7 +147,7 @@ class RayIoUReport(_serialization.DictForm):
         SparseOcc's printout). The first line names the unit; '-' for absent classes."""
 
         def fmt(value: float) -> str:
-            return _fmt(value * 100, ".2f") if percent else _fmt(value)
+            return _fmt(_units.percent(value), ".2f") if percent else _fmt(value)
 
         unit = "percent" if percent else "fractions"
         head = " | ".join(f"{'IoU@' + format(t, 'g'):>7}" for t in self.thresholds)

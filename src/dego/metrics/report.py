@@ -11,9 +11,8 @@ import torch
 from jaxtyping import Float, Integer
 from torch import Tensor
 
-from dego import _serialization
+from dego import _serialization, _units
 from dego._typing import check_tensor_fields, typechecked
-from dego._units import GROUP_DISPLAY_NAMES, percent_text
 
 
 @typechecked
@@ -138,7 +137,7 @@ class OccupancyReport(_serialization.DictForm):
         """
 
         def fmt(v: float) -> float:
-            return round(v * 100, 2) if percent else v
+            return round(_units.percent(v), 2) if percent else v
 
         out = {"iou": fmt(self.iou), "miou": fmt(self.miou)}
         out.update({name: fmt(value) for name, value in self.group_means.items()})
@@ -149,21 +148,21 @@ class OccupancyReport(_serialization.DictForm):
     def table(self) -> str:
         """A paper-style text table in percent with two decimals (the first line says so),
         '-' for absent classes."""
-        groups = {GROUP_DISPLAY_NAMES.get(k, k): v for k, v in self.group_means.items()}
+        groups = {_units.GROUP_DISPLAY_NAMES.get(k, k): v for k, v in self.group_means.items()}
         summary = {"IoU": self.iou, **groups, "mIoU": self.miou}
         lines = [
             f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes, "
             "IoU in percent",
             "| " + " | ".join(f"{k:>6}" for k in summary) + " |",
             "|" + "|".join("-" * 8 for _ in summary) + "|",
-            "| " + " | ".join(f"{percent_text(v):>6}" for v in summary.values()) + " |",
+            "| " + " | ".join(f"{_units.percent_text(v):>6}" for v in summary.values()) + " |",
             "",
             f"| {'class':<22} | {'IoU':>6} | groups",
             f"|{'-' * 24}|{'-' * 8}|{'-' * 8}",
         ]
         for label in self.evaluated_classes:
             member_of = ", ".join(g for g, ids in self.groups.items() if label in ids)
-            value = percent_text(float(self.per_class[label]))
+            value = _units.percent_text(float(self.per_class[label]))
             lines.append(f"| {self.class_names[label]:<22} | {value:>6} | {member_of}".rstrip())
         return "\n".join(lines)
 
