@@ -39,3 +39,12 @@ def test_readme_has_exactly_two_setup_commands(source_tree: Path) -> None:
     assert len(commands) == 2
     assert commands[0].endswith("dego demo --quick")
     assert commands[1].endswith("python -m pytest -q")
+
+
+def test_getting_started_repeats_the_readme_install_commands(source_tree: Path) -> None:
+    def blocks(page: Path, kind: str) -> list[str]:
+        return re.findall(rf"```{kind}\n(.*?)```", page.read_text(), flags=re.DOTALL)
+
+    readme, page = source_tree / "README.md", source_tree / "docs" / "getting-started.md"
+    assert blocks(page, "bash") == blocks(readme, "bash")  # the clone path's two commands
+    assert blocks(page, "text")[0] == blocks(readme, "text")[0]  # the package-index path
