@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
@@ -61,23 +62,31 @@ def test_intervals_from_fewer_than_three_seeds_are_flagged_not_printed() -> None
     assert mean_interval([5.0, 5.1, 4.9]).excludes_zero()
 
 
-@pytest.mark.parametrize("seeds", [(0, 1), (0, 1, 2)])
-def test_report_flags_too_few_seeds(seeds: tuple[int, ...]) -> None:
-    from dego.study import MASK_METRICS, study_report
+def made_up_runs(seeds: Iterable[int], mask_step: float = 0.0) -> list[StudyRun]:
+    """``static`` and ``decoupled`` runs at budget 10: every score 1, articulated t!=0
+    5 + seed and 9 + seed, every mask statistic 0.5 + mask_step * seed."""
+    from dego.study import MASK_METRICS
 
-    runs = [
+    return [
         StudyRun(
             seed,
             10,
             variant,
             dict.fromkeys(METRICS, 1.0) | {"articulated t!=0": value + seed},
-            dict.fromkeys(MASK_METRICS, 0.5 + 0.1 * seed),
+            dict.fromkeys(MASK_METRICS, 0.5 + mask_step * seed),
             3.0,
             1.0,
         )
         for seed in seeds
         for variant, value in (("static", 5.0), ("decoupled", 9.0))
     ]
+
+
+@pytest.mark.parametrize("seeds", [(0, 1), (0, 1, 2)])
+def test_report_flags_too_few_seeds(seeds: tuple[int, ...]) -> None:
+    from dego.study import study_report
+
+    runs = made_up_runs(seeds, mask_step=0.1)
     text, payload = study_report(runs, StudyConfig(seeds=seeds, budgets=(10,)))
     flagged = len(seeds) < 3
     assert ("no interval is given (`n/a`)" in text) == flagged
@@ -268,21 +277,9 @@ def test_default_study_leaves_out_the_mask_prior_variant() -> None:
 
 
 def test_paired_report_marks_resolved_signs() -> None:
-    from dego.study import MASK_METRICS, study_report
+    from dego.study import study_report
 
-    runs = [
-        StudyRun(
-            seed,
-            10,
-            variant,
-            dict.fromkeys(METRICS, 1.0) | {"articulated t!=0": value + seed},
-            dict.fromkeys(MASK_METRICS, 0.5),
-            3.0,
-            1.0,
-        )
-        for seed in range(3)
-        for variant, value in (("static", 5.0), ("decoupled", 9.0))
-    ]
+    runs = made_up_runs(range(3))
     text, payload = study_report(runs, StudyConfig(seeds=(0, 1, 2), budgets=(10,)))
     line = next(x for x in text.splitlines() if x.startswith("| decoupled - static | 10 |"))
     assert "4.00 [4.00, 4.00] *" in line

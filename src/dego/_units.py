@@ -12,9 +12,6 @@ import math
 UNIT = "percent"
 """The unit named in report headings and in the ``"units"`` field of JSON reports."""
 
-GROUP_DISPLAY_NAMES = {"insm": "InsM", "scnm": "ScnM", "hcm": "HCM"}
-"""How the class-group means are headed in tables."""
-
 
 def percent(value: float) -> float:
     """A fraction as a percentage (NaN stays NaN)."""

@@ -24,6 +24,7 @@ from torch import Tensor
 
 from dego._atomic import write_files
 from dego._checks import check_int
+from dego._units import UNIT
 from dego.data.synthetic import SyntheticScene
 from dego.demo.clip import DEMO_FRAME_DT, MAX_DEMO_FRAMES, DemoClip, max_gaussians
 from dego.demo.evaluate import lifted_clip_labels, predict_clip, score_clip
@@ -356,7 +357,7 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
             "the means are single draws, not comparisons.",
         ]
     payload: dict = {
-        "units": {"scores": "percent", "mask": "mask values and ROC-AUC in [0, 1]"},
+        "units": {"scores": UNIT, "mask": "mask values and ROC-AUC in [0, 1]"},
         "settings": dataclasses.asdict(config),
         "runs": [dataclasses.asdict(r) for r in runs],
         "summary": {},

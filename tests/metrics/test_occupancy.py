@@ -273,6 +273,10 @@ def test_report_table_and_dict() -> None:
     assert "InsM" in text and "ScnM" in text and "HCM" in text and "mIoU" in text
     assert "pedestrian" in text and "others" not in text.split("groups", 1)[1]
     assert f"{report.miou * 100:.2f}" in text and text.splitlines()[0].endswith("IoU in percent")
+    headline = report.headline()  # the tables' summary row, fractions
+    assert list(headline) == ["IoU", "InsM", "ScnM", "HCM", "mIoU"]
+    assert headline["IoU"] == report.iou and headline["mIoU"] == report.miou
+    assert headline["HCM"] == report.hcm
     as_dict = report.as_dict()
     assert set(as_dict) >= {"iou", "miou", "insm", "scnm", "hcm", "iou/car"}
     assert (

@@ -19,7 +19,7 @@ from typing import Any
 from torch import Tensor
 
 from dego._typing import check_tensor_fields
-from dego._units import GROUP_DISPLAY_NAMES, UNIT, percent_or_none, percent_text
+from dego._units import UNIT, percent_or_none, percent_text
 from dego.evaluation.errors import SampleFailure
 from dego.metrics.rayiou import RayIoUReport
 from dego.metrics.report import OccupancyReport
@@ -213,8 +213,7 @@ class EvaluationReport:
         lines += [f"- {line}" for line in self._summary_lines()]
         lines += ["", "All scores are percentages with 2 decimals."]
         for name, report in self.protocols.items():
-            groups = {GROUP_DISPLAY_NAMES.get(k, k): v for k, v in report.group_means.items()}
-            summary = {"IoU": report.iou, **groups, "mIoU": report.miou}
+            summary = report.headline()
             lines += [
                 "",
                 f"## Voxel IoU (percent), {name} protocol "

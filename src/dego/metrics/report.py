@@ -35,6 +35,9 @@ def _nanmean(values: Tensor) -> float:
     return float(finite.mean()) if finite.numel() else math.nan
 
 
+_GROUP_HEADINGS = {"insm": "InsM", "scnm": "ScnM", "hcm": "HCM"}
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class OccupancyReport(_serialization.DictForm):
     """Scores of a set of occupancy predictions; every value is a fraction in [0, 1] (or NaN).
@@ -145,11 +148,16 @@ class OccupancyReport(_serialization.DictForm):
             out[f"iou/{self.class_names[label]}"] = fmt(float(self.per_class[label]))
         return out
 
+    def headline(self) -> dict[str, float]:
+        """The summary row of the tables, in their order and with their headings:
+        ``{"IoU", "InsM", "ScnM", "HCM" (the configured groups), "mIoU"}``, fractions."""
+        groups = {_GROUP_HEADINGS.get(k, k): v for k, v in self.group_means.items()}
+        return {"IoU": self.iou, **groups, "mIoU": self.miou}
+
     def table(self) -> str:
         """A paper-style text table in percent with two decimals (the first line says so),
         '-' for absent classes."""
-        groups = {_units.GROUP_DISPLAY_NAMES.get(k, k): v for k, v in self.group_means.items()}
-        summary = {"IoU": self.iou, **groups, "mIoU": self.miou}
+        summary = self.headline()
         lines = [
             f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes, "
             "IoU in percent",
