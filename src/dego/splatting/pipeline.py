@@ -96,14 +96,16 @@ def render(
         raise ValueError(f"layout: expected 'channels_first' or 'channels_last', got {layout!r}")
     if layout == "channels_last" and config.backend == "gsplat":
         raise ValueError(
-            "backend: 'gsplat' renders the channels_first layout only; use backend='torch' "
-            "or 'auto' with layout='channels_last'"
+            "backend: 'gsplat' renders the channels_first layout only; use backend='torch', "
+            "'triton' or 'auto' with layout='channels_last'"
         )
     dtype = gaussians.dtype
     size, gaussians, world_to_cam, intrinsics, features, background = _prepare(
         gaussians, world_to_cam, intrinsics, image_size, features, background, config
     )
-    if layout == "channels_first" and config.backend != "torch":
+    # backend="auto" tries, in order: gsplat (channels first, CUDA, its compiled constants
+    # equal to the config's), the Triton kernels (CUDA), the torch path.
+    if layout == "channels_first" and config.backend in ("auto", "gsplat"):
         from dego.splatting import gsplat_backend
 
         if gsplat_backend.usable(gaussians, config, strict=config.backend == "gsplat"):
@@ -111,8 +113,21 @@ def render(
                 gaussians, world_to_cam, intrinsics, size, features, background, config
             )
             return _in_dtype(out, dtype)
+    triton = False
+    if config.backend in ("auto", "triton"):
+        from dego.splatting import triton_backend
+
+        triton = triton_backend.usable(gaussians, config, strict=config.backend == "triton")
     done = _composite(
-        gaussians, world_to_cam, intrinsics, size, features, config, means2d_hook, absgrad_sink
+        gaussians,
+        world_to_cam,
+        intrinsics,
+        size,
+        features,
+        config,
+        means2d_hook,
+        absgrad_sink,
+        triton=triton,
     )
     b, v = world_to_cam.shape[:2]
     grid = layouts.TileGrid.of(b, v, done.lists, config.tile_size, size)
@@ -218,8 +233,11 @@ def _composite(
     config: SplatConfig,
     means2d_hook: Means2dHook | None,
     absgrad_sink: AbsgradSink | None,
+    *,
+    triton: bool = False,
 ) -> _Composited:
-    """Project, intersect with tiles and composite (the torch path)."""
+    """Project, intersect with tiles and composite (the torch path; with ``triton``, the
+    binning and compositing of :mod:`dego.splatting.triton_backend`)."""
     b, n = gaussians.batch_shape[0], gaussians.num_gaussians
     v = world_to_cam.shape[1]
     channels = 0 if features is None else features.shape[-1]
@@ -261,6 +279,23 @@ def _composite(
         def absgrad_sink(total: Tensor) -> None:
             proj.means2d.absgrad = total.view_as(proj.means2d)  # type: ignore[attr-defined]
 
+    if triton:
+        from dego.splatting import triton_backend
+
+        tiles, transmittance, lists = triton_backend.bin_and_composite(
+            proj.means2d.flatten(0, 1),
+            extents.flatten(0, 1),
+            proj.depths.flatten(0, 1),
+            proj.conics.flatten(0, 1),
+            max_sigma.flatten(0, 1),
+            opacities.reshape(-1),
+            colors.reshape(b * v * n, colors.shape[-1]),
+            size,
+            config,
+            absgrad_sink if config.absgrad else None,
+            means2d.reshape(-1, 2),
+        )
+        return _Composited(tiles, transmittance, lists, proj, channels)
     tiles, transmittance, lists = _bin_and_composite(
         proj,
         extents,

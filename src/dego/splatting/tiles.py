@@ -93,6 +93,7 @@ def build_tile_lists(
     *,
     conics: Tensor | None = None,
     max_sigma: Tensor | None = None,
+    keyed: bool = False,
 ) -> TileLists:
     """Intersect ``(I, N)`` projected Gaussians (I images) with their tiles and sort each
     tile's list by depth, with no Python loop over Gaussians or tiles.
@@ -101,7 +102,10 @@ def build_tile_lists(
     With ``conics`` and ``max_sigma``, (Gaussian, tile) pairs whose tile lies wholly
     outside the ellipse ``sigma <= max_sigma`` are dropped too. Pairs are generated in
     global depth order (one argsort), then stably sorted by tile id, which leaves every
-    tile's list front to back.
+    tile's list front to back. With ``keyed`` (the Triton path), pairs are generated in
+    index order and sorted once by an int64 key, the global tile id (which holds the
+    image) in the high 32 bits and the float32 depth's order-preserving bits in the low
+    32: the same lists, ties in depth broken by index in both.
     """
     height, width = image_size
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
@@ -112,8 +116,11 @@ def build_tile_lists(
     span_x = x1 - x0
     drawn = (extents > 0).all(-1).reshape(-1)
     counts = torch.where(drawn, span_x * (y1 - y0), torch.zeros_like(span_x))
-    order = torch.argsort(depths.reshape(-1), stable=True)
-    order = order[counts[order] > 0]
+    if keyed:
+        order = torch.nonzero(counts > 0).squeeze(-1)
+    else:
+        order = torch.argsort(depths.reshape(-1), stable=True)
+        order = order[counts[order] > 0]
     per_gaussian = counts[order]
     pair_gaussian = order.repeat_interleave(per_gaussian)
     first = torch.cumsum(per_gaussian, 0) - per_gaussian
@@ -136,7 +143,12 @@ def build_tile_lists(
         pair_gaussian, tx, ty = pair_gaussian[keep], tx[keep], ty[keep]
     image = pair_gaussian // n
     tile = (image * tiles_y + ty) * tiles_x + tx
-    tile, perm = torch.sort(tile, stable=True)
+    if keyed:
+        depth_bits = depth_order_bits(depths.reshape(-1)[pair_gaussian])
+        tile, perm = torch.sort((tile << 32) | depth_bits, stable=True)
+        tile = tile >> 32
+    else:
+        tile, perm = torch.sort(tile, stable=True)
     num_tiles = num_images * tiles_x * tiles_y
     tile_counts = torch.bincount(tile, minlength=num_tiles)
     return TileLists(
@@ -146,3 +158,10 @@ def build_tile_lists(
         tiles_x=tiles_x,
         tiles_y=tiles_y,
     )
+
+
+def depth_order_bits(depths: Tensor) -> Tensor:
+    """int64 in ``[0, 2^32)`` ordered as the float32 ``depths`` are (-0.0 before +0.0)."""
+    bits = depths.to(torch.float32).view(torch.int32).to(torch.int64)
+    # negative floats order reversed in their magnitude bits: flip those, then offset
+    return torch.where(bits < 0, bits ^ 0x7FFFFFFF, bits) + (1 << 31)

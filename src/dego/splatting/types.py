@@ -18,7 +18,7 @@ from dego import _serialization
 from dego.splatting.projection import RADIUS_SIGMA, Projection, RadiusRule, RasterizeMode
 
 DepthMode = Literal["expected", "accumulated", "none"]
-Backend = Literal["torch", "auto", "gsplat"]
+Backend = Literal["torch", "auto", "gsplat", "triton"]
 Layout = Literal["channels_first", "channels_last"]
 ImageSize = tuple[SupportsIndex, SupportsIndex] | Sequence[SupportsIndex] | np.ndarray
 
@@ -115,7 +115,11 @@ class SplatConfig:
                 self.depth_mode in ("expected", "accumulated", "none"),
                 "'expected', 'accumulated' or 'none'",
             ),
-            ("backend", self.backend in ("torch", "auto", "gsplat"), "'torch', 'auto' or 'gsplat'"),
+            (
+                "backend",
+                self.backend in ("torch", "auto", "gsplat", "triton"),
+                "'torch', 'auto', 'gsplat' or 'triton'",
+            ),
             (
                 "rasterize_mode",
                 self.rasterize_mode in ("classic", "antialiased"),
