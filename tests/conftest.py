@@ -21,6 +21,11 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ["OMP_NUM_THREADS"] = "1"
     torch.set_num_threads(1)
 
+# The Triton backend's tests run its kernels on CPU through Triton's interpreter where no GPU
+# is present; the variable must be set before dego first imports its kernels.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
 settings.register_profile(
     "default",
     deadline=None,

@@ -27,7 +27,7 @@ from dego.gaussians import GaussianSet
 from dego.spherical_harmonics import MAX_DEGREE, spherical_harmonics
 from dego.splatting import gsplat_backend, pipeline
 from dego.splatting.projection import Projection
-from dego.splatting.types import SplatConfig
+from dego.splatting.types import Backend, SplatConfig
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 DEPTH_MODES = {"RGB": "none", "D": "accumulated", "ED": "expected"}
@@ -176,6 +176,7 @@ def rasterization(
     camera_model: str = "pinhole",
     *,
     gsplat_version: str | None = None,
+    backend: Backend = "torch",
     **rest: Any,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """gsplat's ``rasterization``, computed by :func:`dego.splat` (any device).
@@ -218,6 +219,10 @@ def rasterization(
             ``"gsplat<=1.4"`` radius rule (``meta["radii"]`` ``[..., C, N]``) and max alpha
             0.999, so both entry points give the same images; pass ``"1.5"`` for gsplat
             1.5's radii.
+        backend: dego's compositing: ``"torch"`` (any device), ``"triton"`` (the Triton
+            kernels, CUDA; ``pip install "dego-occupancy[triton]"``) or ``"auto"`` (Triton
+            when usable, else torch); see :func:`dego.splat`. gsplat's own kernels are not
+            offered here: this adapter is for code that runs without gsplat.
         **rest: gsplat's other keywords: ``channel_chunk`` and ``segmented`` are accepted
             (no effect on the values); distortion, rolling-shutter, unscented-transform,
             ``covars`` and ``distributed`` raise ``NotImplementedError`` unless left at
@@ -322,6 +327,7 @@ def rasterization(
         radius_clip=radius_clip,
         rasterize_mode=rasterize_mode,
         absgrad=absgrad,
+        backend=backend,
         **release_options,
     )
     layout = _MetaLayout(batch, cameras, n, packed)

@@ -9,12 +9,12 @@ allocate a zero-filled gradient per slice in backward, and a transposition anoth
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from dego.splatting.tiles import TileLists
 
 _TINY_ALPHA = 1e-10
 
@@ -32,10 +32,10 @@ class TileGrid:
     width: int
 
     @classmethod
-    def of(
-        cls, b: int, v: int, lists: TileLists, tile_size: int, size: tuple[int, int]
-    ) -> TileGrid:
-        return cls(b, v, lists.tiles_y, lists.tiles_x, tile_size, *size)
+    def of(cls, b: int, v: int, tile_size: int, size: tuple[int, int]) -> TileGrid:
+        height, width = size
+        tiles_y, tiles_x = math.ceil(height / tile_size), math.ceil(width / tile_size)
+        return cls(b, v, tiles_y, tiles_x, tile_size, height, width)
 
     @property
     def cropped(self) -> bool:

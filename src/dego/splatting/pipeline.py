@@ -23,7 +23,7 @@ from dego.gaussians import GaussianSet
 from dego.splatting import composite, inputs, layouts
 from dego.splatting.composite import CompositeRules, composite_tiles
 from dego.splatting.projection import Projection, project_gaussians
-from dego.splatting.tiles import TileLists, build_tile_lists, contributing_extents
+from dego.splatting.tiles import build_tile_lists, contributing_extents
 from dego.splatting.types import ChannelsLastOutput, ImageSize, Layout, SplatConfig, SplatOutput
 
 Means2dHook = Callable[[Projection], Tensor]
@@ -130,7 +130,7 @@ def render(
         triton=triton,
     )
     b, v = world_to_cam.shape[:2]
-    grid = layouts.TileGrid.of(b, v, done.lists, config.tile_size, size)
+    grid = layouts.TileGrid.of(b, v, config.tile_size, size)
     final_t = layouts.untile(done.transmittance, grid)
     alpha = 1 - final_t
     proj = done.projection
@@ -178,7 +178,6 @@ class _Composited:
 
     tiles: Tensor  # (B*V*ty*tx, S, S, D): features, then depth when rendered
     transmittance: Tensor  # (B*V*ty*tx, S, S)
-    lists: TileLists
     projection: Projection
     channels: int  # feature channels C (D = C + 1 with depth)
 
@@ -198,7 +197,7 @@ def _bin_and_composite(
     config: SplatConfig,
     absgrad_sink: AbsgradSink | None,
     kernel_backend: str | None,
-) -> tuple[Tensor, Tensor, TileLists]:
+) -> tuple[Tensor, Tensor]:
     lists = build_tile_lists(
         proj.means2d.flatten(0, 1),
         extents.flatten(0, 1),
@@ -221,7 +220,7 @@ def _bin_and_composite(
         absgrad_sink=absgrad_sink,
         kernel_backend=kernel_backend,
     )
-    return tiles, transmittance, lists
+    return tiles, transmittance
 
 
 def _composite(
@@ -282,7 +281,7 @@ def _composite(
     if triton:
         from dego.splatting import triton_backend
 
-        tiles, transmittance, lists = triton_backend.bin_and_composite(
+        tiles, transmittance = triton_backend.bin_and_composite(
             proj.means2d.flatten(0, 1),
             extents.flatten(0, 1),
             proj.depths.flatten(0, 1),
@@ -295,8 +294,8 @@ def _composite(
             absgrad_sink if config.absgrad else None,
             means2d.reshape(-1, 2),
         )
-        return _Composited(tiles, transmittance, lists, proj, channels)
-    tiles, transmittance, lists = _bin_and_composite(
+        return _Composited(tiles, transmittance, proj, channels)
+    tiles, transmittance = _bin_and_composite(
         proj,
         extents,
         max_sigma,
@@ -308,7 +307,7 @@ def _composite(
         absgrad_sink if config.absgrad else None,
         composite.COMPILED_KERNELS if _is_compiling() else None,
     )
-    return _Composited(tiles, transmittance, lists, proj, channels)
+    return _Composited(tiles, transmittance, proj, channels)
 
 
 def _in_dtype(out: SplatOutput, dtype: torch.dtype) -> SplatOutput:

@@ -64,7 +64,7 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
             raise ImportError(f"backend: 'triton' needs triton ({INSTALL})")
         return False
     device = gaussians.device
-    if device.type != "cuda" and not (strict and device.type == "cpu" and interpreting()):
+    if not _runs_on(device, strict):
         if strict:
             raise ValueError(
                 f"backend: 'triton' needs CUDA tensors, got {device} (on CPU, the torch path "
@@ -76,13 +76,25 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
     if key not in _PROBED:
         if _is_compiling():  # probed at the first eager call; a compiled first call assumes it
             return True
-        _PROBED[key] = _probe(device)
+        failure = _PROBED[key] = _probe(device)
+        if failure is not None and not strict:
+            warnings.warn(
+                f"backend='auto': the Triton kernels failed on {_device_name(device)} "
+                f"({failure}); rendering with the torch path",
+                RuntimeWarning,
+                stacklevel=4,
+            )
     failure = _PROBED[key]
     if failure is None:
         return True
     if strict:
         raise RuntimeError(f"backend: 'triton' cannot run on {_device_name(device)}: {failure}")
     return False
+
+
+def _runs_on(device: torch.device, strict: bool) -> bool:
+    """CUDA tensors; CPU tensors only when asked for by name and interpreted."""
+    return device.type == "cuda" or (strict and device.type == "cpu" and interpreting())
 
 
 def _device_name(device: torch.device) -> str:
@@ -114,14 +126,7 @@ def _probe(device: torch.device) -> str | None:
         if device.type == "cuda":
             torch.cuda.synchronize(device)
     except Exception as error:  # any failure of the compiler or the driver
-        message = f"{type(error).__name__}: {error}".strip().splitlines()[0][:300]
-        warnings.warn(
-            f"backend='auto': the Triton kernels failed on {_device_name(device)} ({message}); "
-            "rendering with the torch path",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-        return message
+        return f"{type(error).__name__}: {error}".strip().splitlines()[0][:300]
     return None
 
 
@@ -137,29 +142,16 @@ def bin_and_composite(
     config: SplatConfig,
     absgrad_sink: Callable[[Tensor], None] | None,
     compositing_means2d: Tensor,
-) -> tuple[Tensor, Tensor, TileLists]:
-    """Tile lists and composited tiles, as the torch path's ``_bin_and_composite`` returns
-    them. ``means2d``, ``extents``, ``depths``, ``conics``, ``max_sigma``: ``(I, N, ...)``
-    per image for the binning; ``compositing_means2d`` ``(M, 2)``, ``opacities`` ``(M,)``,
-    ``colors`` ``(M, D)`` what the compositing reads and differentiates."""
-    height, width = size
-    pairs, starts, counts = torch.ops.dego.triton_tile_lists(
-        means2d.detach().float(),
-        extents.detach().float(),
-        depths.detach().float(),
-        conics.detach().float(),
-        max_sigma.detach().float(),
-        height,
-        width,
-        config.tile_size,
+) -> tuple[Tensor, Tensor]:
+    """Composited tiles ``(T, S, S, D)`` and final transmittance ``(T, S, S)``, as the torch
+    path's ``_bin_and_composite`` returns them. ``means2d``, ``extents``, ``depths``,
+    ``conics``, ``max_sigma``: ``(I, N, ...)`` per image, for the binning (no gradient);
+    ``compositing_means2d`` ``(M, 2)``, ``conics`` (flattened), ``opacities`` ``(M,)``,
+    ``colors`` ``(M, D)``: what the compositing reads and differentiates."""
+    binning = tuple(
+        t.detach().float().contiguous() for t in (means2d, extents, depths, conics, max_sigma)
     )
-    lists = TileLists(
-        gaussians=pairs,
-        starts=starts,
-        counts=counts,
-        tiles_x=math.ceil(width / config.tile_size),
-        tiles_y=math.ceil(height / config.tile_size),
-    )
+    shape = (*size, config.tile_size)
     rules = CompositeRules(config.max_alpha, config.alpha_min, config.transmittance_min)
     tensors = (
         compositing_means2d.contiguous(),
@@ -167,22 +159,47 @@ def bin_and_composite(
         opacities.contiguous(),
         colors.contiguous(),
     )
-    if absgrad_sink is not None:
-        tiles, transmittance = _composite_with_absgrad(
-            *tensors, lists, config.tile_size, rules, absgrad_sink
+    if _is_compiling() and absgrad_sink is None:
+        # one operator with static output shapes: dynamo does not break the graph on it
+        tiles, transmittance, _ = torch.ops.dego.triton_rasterize(
+            *binning, *tensors, *shape, *_rules(rules)
         )
-    else:
-        tiles, transmittance, _ = torch.ops.dego.triton_composite(
-            *tensors,
-            pairs,
-            starts,
-            counts,
-            lists.tiles_x,
-            lists.tiles_x * lists.tiles_y,
-            config.tile_size,
-            *_rules(rules),
-        )
-    return tiles, transmittance, lists
+        return tiles, transmittance
+    return _eager(binning, tensors, shape, rules, absgrad_sink)
+
+
+@torch._dynamo.disable
+def _eager(
+    binning: tuple[Tensor, ...],
+    tensors: tuple[Tensor, ...],
+    shape: tuple[int, int, int],
+    rules: CompositeRules,
+    absgrad_sink: Callable[[Tensor], None] | None,
+) -> tuple[Tensor, Tensor]:
+    lists = _lists(*binning, *shape)
+    return _Composite.apply(*tensors, lists, shape[2], rules, absgrad_sink)
+
+
+def _lists(
+    means2d: Tensor,
+    extents: Tensor,
+    depths: Tensor,
+    conics: Tensor,
+    max_sigma: Tensor,
+    height: int,
+    width: int,
+    tile_size: int,
+) -> TileLists:
+    return build_tile_lists(
+        means2d,
+        extents,
+        depths,
+        (height, width),
+        tile_size,
+        conics=conics,
+        max_sigma=max_sigma,
+        keyed=True,
+    )
 
 
 def _rules(rules: CompositeRules) -> tuple[float, float, float]:
@@ -251,75 +268,24 @@ class _Composite(torch.autograd.Function):
         return (*grads[:4], None, None, None, None)
 
 
-@torch._dynamo.disable
-def _composite_with_absgrad(
+# The operators torch.compile sees: binning and compositing in one forward operator with
+# static output shapes (the pair list's length is data-dependent, and dynamo breaks the
+# graph on an operator whose output shape is); its backward operator bins again (the
+# binning is deterministic) rather than keep the pair list. Both call the same kernels.
+
+@torch.library.custom_op("dego::triton_rasterize", mutates_args=())
+def _rasterize(
+    bin_means2d: Tensor,
+    bin_extents: Tensor,
+    bin_depths: Tensor,
+    bin_conics: Tensor,
+    bin_max_sigma: Tensor,
     means2d: Tensor,
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    lists: TileLists,
-    tile_size: int,
-    rules: CompositeRules,
-    absgrad_sink: Callable[[Tensor], None],
-) -> tuple[Tensor, Tensor]:
-    return _Composite.apply(means2d, conics, opacities, colors, lists, tile_size, rules, absgrad_sink)
-
-
-# The custom operators: what torch.compile sees. Each calls the same kernels.
-
-
-@torch.library.custom_op("dego::triton_tile_lists", mutates_args=())
-def _tile_lists(
-    means2d: Tensor,
-    extents: Tensor,
-    depths: Tensor,
-    conics: Tensor,
-    max_sigma: Tensor,
     height: int,
     width: int,
-    tile_size: int,
-) -> tuple[Tensor, Tensor, Tensor]:
-    lists = build_tile_lists(
-        means2d,
-        extents,
-        depths,
-        (height, width),
-        tile_size,
-        conics=conics,
-        max_sigma=max_sigma,
-        keyed=True,
-    )
-    return lists.gaussians, lists.starts, lists.counts
-
-
-@_tile_lists.register_fake
-def _(
-    means2d: Tensor,
-    extents: Tensor,
-    depths: Tensor,
-    conics: Tensor,
-    max_sigma: Tensor,
-    height: int,
-    width: int,
-    tile_size: int,
-) -> tuple[Tensor, Tensor, Tensor]:
-    pairs = torch.library.get_ctx().new_dynamic_size()
-    tiles = depths.shape[0] * math.ceil(width / tile_size) * math.ceil(height / tile_size)
-    index = {"dtype": torch.int64, "device": depths.device}
-    return torch.empty(pairs, **index), torch.empty(tiles, **index), torch.empty(tiles, **index)
-
-
-@torch.library.custom_op("dego::triton_composite", mutates_args=())
-def _composite(
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    pairs: Tensor,
-    starts: Tensor,
-    counts: Tensor,
-    tiles_x: int,
-    tiles_per_image: int,
     tile_size: int,
     max_alpha: float,
     alpha_min: float,
@@ -327,38 +293,44 @@ def _composite(
 ) -> tuple[Tensor, Tensor, Tensor]:
     from dego.splatting import triton_kernels
 
+    lists = _lists(
+        bin_means2d, bin_extents, bin_depths, bin_conics, bin_max_sigma, height, width, tile_size
+    )
     return triton_kernels.forward(
         means2d,
         conics,
         opacities,
         colors,
-        pairs,
-        starts,
-        counts,
-        tiles_x,
-        tiles_per_image,
+        lists.gaussians,
+        lists.starts,
+        lists.counts,
+        lists.tiles_x,
+        lists.tiles_x * lists.tiles_y,
         tile_size,
         (max_alpha, alpha_min, transmittance_min),
     )
 
 
-@_composite.register_fake
+@_rasterize.register_fake
 def _(
+    bin_means2d: Tensor,
+    bin_extents: Tensor,
+    bin_depths: Tensor,
+    bin_conics: Tensor,
+    bin_max_sigma: Tensor,
     means2d: Tensor,
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    pairs: Tensor,
-    starts: Tensor,
-    counts: Tensor,
-    tiles_x: int,
-    tiles_per_image: int,
+    height: int,
+    width: int,
     tile_size: int,
     max_alpha: float,
     alpha_min: float,
     transmittance_min: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    tiles, size = counts.shape[0], tile_size
+    size = tile_size
+    tiles = bin_depths.shape[0] * math.ceil(height / size) * math.ceil(width / size)
     return (
         colors.new_empty(tiles, size, size, colors.shape[1]),
         colors.new_empty(tiles, size, size),
@@ -366,87 +338,99 @@ def _(
     )
 
 
-@torch.library.custom_op("dego::triton_composite_backward", mutates_args=())
-def _composite_backward(
+@torch.library.custom_op("dego::triton_rasterize_backward", mutates_args=())
+def _rasterize_backward(
+    bin_means2d: Tensor,
+    bin_extents: Tensor,
+    bin_depths: Tensor,
+    bin_conics: Tensor,
+    bin_max_sigma: Tensor,
     means2d: Tensor,
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    pairs: Tensor,
-    starts: Tensor,
     transmittance: Tensor,
     stop: Tensor,
     grad_tiles: Tensor,
     grad_transmittance: Tensor,
-    tiles_x: int,
-    tiles_per_image: int,
+    height: int,
+    width: int,
+    tile_size: int,
     max_alpha: float,
     alpha_min: float,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     from dego.splatting import triton_kernels
 
+    lists = _lists(
+        bin_means2d, bin_extents, bin_depths, bin_conics, bin_max_sigma, height, width, tile_size
+    )
     grads = triton_kernels.backward(
         means2d,
         conics,
         opacities,
         colors,
-        pairs,
-        starts,
+        lists.gaussians,
+        lists.starts,
         transmittance,
         stop,
         grad_tiles,
         grad_transmittance,
-        tiles_x,
-        tiles_per_image,
+        lists.tiles_x,
+        lists.tiles_x * lists.tiles_y,
         (max_alpha, alpha_min, 0.0),
         False,
     )
     return grads[0], grads[1], grads[2], grads[3]
 
 
-@_composite_backward.register_fake
+@_rasterize_backward.register_fake
 def _(
+    bin_means2d: Tensor,
+    bin_extents: Tensor,
+    bin_depths: Tensor,
+    bin_conics: Tensor,
+    bin_max_sigma: Tensor,
     means2d: Tensor,
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    pairs: Tensor,
-    starts: Tensor,
     transmittance: Tensor,
     stop: Tensor,
     grad_tiles: Tensor,
     grad_transmittance: Tensor,
-    tiles_x: int,
-    tiles_per_image: int,
+    height: int,
+    width: int,
+    tile_size: int,
     max_alpha: float,
     alpha_min: float,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    return tuple(torch.empty_like(t) for t in (means2d, conics, opacities, colors))  # type: ignore[return-value]
+    return (
+        torch.empty_like(means2d),
+        torch.empty_like(conics),
+        torch.empty_like(opacities),
+        torch.empty_like(colors),
+    )
 
 
 def _setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Tensor, ...]) -> None:
-    means2d, conics, opacities, colors, pairs, starts, _, tiles_x, per_image, _, *rules = inputs
     _, transmittance, stop = output
-    ctx.save_for_backward(means2d, conics, opacities, colors, pairs, starts, transmittance, stop)
-    ctx.tiles_x, ctx.per_image, ctx.rules = tiles_x, per_image, rules
+    ctx.save_for_backward(*inputs[:9], transmittance, stop)
+    ctx.options = inputs[9:14]  # height, width, tile_size, max_alpha, alpha_min
 
 
 def _backward(
     ctx: Any, grad_tiles: Tensor, grad_transmittance: Tensor, _grad_stop: Tensor | None
 ) -> tuple[Tensor | None, ...]:
-    grads = torch.ops.dego.triton_composite_backward(
+    grads = torch.ops.dego.triton_rasterize_backward(
         *ctx.saved_tensors,
         grad_tiles.contiguous(),
         grad_transmittance.contiguous(),
-        ctx.tiles_x,
-        ctx.per_image,
-        ctx.rules[0],
-        ctx.rules[1],
+        *ctx.options,
     )
-    return (*grads, *(None,) * 9)
+    return (None,) * 5 + tuple(grads) + (None,) * 6
 
 
-_composite.register_autograd(_backward, setup_context=_setup_context)
+_rasterize.register_autograd(_backward, setup_context=_setup_context)
 
 
 __all__ = ["INSTALL", "bin_and_composite", "installed", "interpreting", "usable"]

@@ -117,7 +117,9 @@ def _forward_kernel(
             other=0.0,
         )
         acc += tl.dot(tl.trans(weights), colors, input_precision="ieee")
-        transmittance = tl.where(done, transmittance, transmittance - tl.sum(weights, 0))
+        # the product of (1 - alpha), not 1 - sum(w): backward divides it back, and the
+        # difference would have lost its relative precision where T is small
+        transmittance = tl.min(tl.where(blocked, transmittance[None, :], after), 0)
         newly = blocked & ~done[None, :]
         first = tl.min(tl.where(newly, local[:, None], count), 0)
         stop = tl.where(done, stop, first)
