@@ -4,12 +4,16 @@ Graph breaks: ``torch._dynamo.explain`` of each public op alone on the small inp
 ``tests/helpers/compile_step.py`` (splat, the gsplat adapter, voxelize, the deformation network,
 the teacher, the distillation loss, ray casting, both metric updates).
 W1: 6 surround cameras at 256 x 704, 10,000 Gaussians, C = 48, expected depth, forward +
-    backward, eager vs ``torch.compile`` (inductor), timed alternately after the compile.
+    backward, eager vs ``torch.compile`` (inductor), timed alternately after the compile;
+    with ``--device cuda`` through ``backend="triton"`` when triton is installed (one
+    custom operator, no graph break), and the CPU passes (graph breaks, fit step) are
+    skipped so that the CUDA timings come first.
 Fit step: one step of the demo's fit (``dego demo --quick`` budget, the decoupled variant:
     the deformation network, splatting of the deformed Gaussians, the 2D losses, backward),
     eager vs compiled.
 
-    python benchmarks/bench_compile.py [--repeats 5] [--skip-w1] [--skip-fit] [--breaks-only]
+    python benchmarks/bench_compile.py [--device cuda] [--repeats 5] [--skip-w1] [--skip-fit]
+        [--breaks-only]
 """
 
 from __future__ import annotations
@@ -52,23 +56,33 @@ def graph_breaks() -> None:
         )
 
 
-def timed(label: str, fns: dict[str, Callable[[], None]], repeats: int) -> None:
-    medians = alternating_median_seconds(fns, torch.device("cpu"), repeats=repeats, warmup=1)
-    peaks = {name: peak_memory_mib(fn, torch.device("cpu")) for name, fn in fns.items()}
+def timed(
+    label: str,
+    fns: dict[str, Callable[[], None]],
+    repeats: int,
+    device: torch.device | None = None,
+) -> None:
+    device = device or torch.device("cpu")
+    medians = alternating_median_seconds(fns, device, repeats=repeats, warmup=1)
+    peaks = {name: peak_memory_mib(fn, device) for name, fn in fns.items()}
     for name in fns:
         print(f"  {label + ' ' + name:<34} {medians[name]:8.3f} s   peak {peaks[name]:8.1f} MiB")
     print(f"  compiled speed-up: {medians['eager'] / medians['compiled']:.2f}x")
 
 
-def w1(repeats: int) -> None:
-    w2c, k = surround_rig(256, 704)
-    gs = occ3d_gaussians(10_000, 48)
+def w1(repeats: int, device: torch.device, backend: str = "torch") -> None:
+    w2c, k = (t.to(device) for t in surround_rig(256, 704))
+    gs = occ3d_gaussians(10_000, 48).to(device)
     means = gs.means.clone().requires_grad_(True)
     features = gs.features.clone().requires_grad_(True)
 
     def step() -> torch.Tensor:
-        out = splat(gs.replace(means=means, features=features), w2c, k, (256, 704))
+        scene = gs.replace(means=means, features=features)
+        out = splat(scene, w2c, k, (256, 704), backend=backend)  # type: ignore[arg-type]
         return out.features.square().mean() + out.depth.mean() + out.alpha.mean()
+
+    step().backward()  # eager first: probes the backend
+    means.grad = features.grad = None
 
     compiled = torch.compile(step)
 
@@ -81,8 +95,11 @@ def w1(repeats: int) -> None:
 
     start = time.perf_counter()
     run(compiled)()
-    print(f"W1 forward + backward (first compiled call {time.perf_counter() - start:.1f} s)")
-    timed("W1", {"eager": run(step), "compiled": run(compiled)}, repeats)
+    print(
+        f"W1 forward + backward, backend {backend!r} on {device} "
+        f"(first compiled call {time.perf_counter() - start:.1f} s)"
+    )
+    timed("W1", {"eager": run(step), "compiled": run(compiled)}, repeats, device)
 
 
 def fit_step(repeats: int) -> None:
@@ -130,12 +147,21 @@ def main() -> None:
     parser.add_argument("--skip-fit", action="store_true")
     parser.add_argument("--breaks-only", action="store_true")
     args = parser.parse_args()
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device cpu")
+    device = torch.device(args.device)
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}")
+    if device.type == "cuda" and not args.breaks_only:
+        # the CUDA timings only: the CPU passes would spend a GPU check's minutes
+        from dego.splatting import triton_backend
+
+        backend = "triton" if triton_backend.installed() else "torch"
+        if not args.skip_w1:
+            w1(args.repeats, device, backend)
+        return
     graph_breaks()
     if args.breaks_only:
         return
     if not args.skip_w1:
-        w1(args.repeats)
+        w1(args.repeats, device)
     if not args.skip_fit:
         fit_step(args.repeats)
 

@@ -43,11 +43,13 @@ def main() -> None:
     ).to(device)
     features = torch.randn(1, n, c, generator=g).to(device).requires_grad_()
     times = torch.linspace(-4, 4, t).to(device)
-    module = DecoupledDeformation(c).to(device)
-    chunkless = DecoupledDeformation(c, chunk_rows=n * t).to(device)
+    module = DecoupledDeformation(c)
     with torch.no_grad():  # non-zero last layers, so every layer gets gradients
         for head in [*module.heads.values(), module.mask_head]:
+            # drawn on the CPU (a CPU generator cannot fill a CUDA tensor), then moved
             head[-1].weight.normal_(0, 0.01, generator=g)
+    module = module.to(device)
+    chunkless = DecoupledDeformation(c, chunk_rows=n * t).to(device)
     chunkless.load_state_dict(module.state_dict())
 
     def batched(net: DecoupledDeformation = module) -> None:

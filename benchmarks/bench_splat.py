@@ -2,9 +2,11 @@
 
 W1 (paper scale): 6 surround cameras at 256 x 704, 10,000 Gaussians in the Occ3D
     volume (scales 0.05-1 m), C = 48 features (16 semantic + 32 distillation), expected
-    depth; ours on the chosen device, and gsplat's ``rasterization`` on the same inputs
-    when CUDA and gsplat are available. Also the overhead of ``dego.compat.gsplat``'s
-    ``rasterization`` over ``dego.splat`` with the same rules.
+    depth; ours on the chosen device (on CUDA: the torch path and ``backend="triton"``
+    when triton is installed), and gsplat's ``rasterization`` on the same inputs when
+    CUDA and gsplat are available, forward + backward and forward alone. Also the
+    overhead of ``dego.compat.gsplat``'s ``rasterization`` over ``dego.splat`` with the
+    same rules.
 W2 (mid): 2 cameras at 128 x 352, 2,000 Gaussians: ours (tile-based) vs a dense
     evaluation of every Gaussian at every pixel with the same rules (chunked over pixel
     rows so that it fits in memory).
@@ -121,6 +123,33 @@ def report(
     return seconds, peak
 
 
+def triton_rows(
+    ours: Callable[..., tuple[torch.Tensor, ...]],
+    gs: GaussianSet,
+    repeats: int,
+    device: torch.device,
+) -> tuple[float, float] | None:
+    """W1 through ``backend="triton"`` (CUDA and triton only): forward + backward, forward
+    alone, the ratio to the torch path and the largest difference from it."""
+    from dego.splatting import triton_backend
+
+    if device.type != "cuda" or not triton_backend.installed():
+        print("  backend='triton': needs CUDA and triton, not measured")
+        return None
+
+    def triton(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
+        return ours(scene, "triton")
+
+    both, _ = report("dego splat, backend='triton'", forward_backward(triton, gs), repeats, device)
+    with torch.no_grad():
+        forward, _ = report("backend='triton', forward only", lambda: triton(gs), repeats, device)
+        difference = max(
+            float((a - b).abs().max()) for a, b in zip(triton(gs), ours(gs), strict=True)
+        )
+    print(f"  max |triton - torch path| (features, depth, alpha): {difference:.2e}")
+    return both, forward
+
+
 def gsplat_call(
     rasterization: Callable[..., tuple[torch.Tensor, torch.Tensor, dict]],
     scene: GaussianSet,
@@ -197,8 +226,8 @@ def main() -> None:
     w2c, k = (t.to(device) for t in surround_rig(256, 704))
     gs = occ3d_gaussians(10_000, 48).to(device)
 
-    def ours(scene: GaussianSet) -> tuple[torch.Tensor, ...]:
-        out = splat(scene, w2c, k, (256, 704))
+    def ours(scene: GaussianSet, backend: str = "torch") -> tuple[torch.Tensor, ...]:
+        out = splat(scene, w2c, k, (256, 704), backend=backend)  # type: ignore[arg-type]
         return out.features, out.depth, out.alpha
 
     if not args.skip_w1:
@@ -207,7 +236,10 @@ def main() -> None:
             "dego splat (torch path)", forward_backward(ours, gs), args.repeats, device
         )
         with torch.no_grad():
-            report("dego splat, forward only", lambda: ours(gs), args.repeats, device)
+            forward_time, _ = report(
+                "dego splat, forward only", lambda: ours(gs), args.repeats, device
+            )
+        triton_times = triton_rows(ours, gs, args.repeats, device)
         compat_overhead(gs, w2c, k, args.repeats, device)
         if device.type == "cuda":
             try:
@@ -222,7 +254,23 @@ def main() -> None:
                 gsplat_time, _ = report(
                     "gsplat rasterization", forward_backward(theirs, gs), args.repeats, device
                 )
-                print(f"  ours / gsplat time: {ours_time / gsplat_time:.2f}x")
+                with torch.no_grad():
+                    gsplat_forward, _ = report(
+                        "gsplat rasterization, forward only",
+                        lambda: theirs(gs),
+                        args.repeats,
+                        device,
+                    )
+                print(f"  torch path / gsplat time: {ours_time / gsplat_time:.2f}x")
+                print(f"  torch path / gsplat forward: {forward_time / gsplat_forward:.2f}x")
+                if triton_times is not None:
+                    print(
+                        f"  triton / gsplat time: {triton_times[0] / gsplat_time:.2f}x (goal <= 2)"
+                    )
+                    print(
+                        f"  triton / gsplat forward: {triton_times[1] / gsplat_forward:.2f}x "
+                        "(goal <= 1.5)"
+                    )
                 from dego.splatting import gsplat_backend
 
                 rule = gsplat_backend.rule_of(gsplat_backend.installed_version() or (1, 5))

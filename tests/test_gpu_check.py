@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -14,6 +15,8 @@ SCRIPT = None if ROOT is None else ROOT / "benchmarks" / "gpu_check.sh"
 STEPS = [
     "tests",
     "bench_splat",
+    "bench_splat_sweep",
+    "bench_compile",
     "gsplat_parity",
     "bench_voxelize",
     "bench_deformation",
@@ -53,3 +56,15 @@ def test_bad_usage_exits_2(tmp_path: Path, args: list[str]) -> None:
     )
     assert done.returncode == 2
     assert "usage" in done.stderr
+
+
+def test_the_step_limits_fit_in_eight_minutes() -> None:
+    """Issue 37: the whole check runs in at most 8 minutes on one GPU. Each step's limit is
+    its second argument; gsplat's background build is bounded by the tests' limit."""
+    assert SCRIPT is not None
+    text = SCRIPT.read_text()
+    limits = {m[1]: int(m[2]) for m in re.finditer(r"^\s*step (\w+) (\d+) ", text, re.M)}
+    assert set(limits) == set(STEPS)
+    assert sum(limits.values()) <= 480, limits
+    build = int(re.search(r"timeout (\d+) \"\$PY\" -c \"import gsplat", text)[1])
+    assert build <= limits["tests"]

@@ -150,7 +150,9 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
     for name, cells in rows.items():
         for column, cell in zip(COLUMNS_4D, cells, strict=False):
             value = payload["percent"][name][column]
-            assert value == pytest.approx(float(cell), abs=0.5), (name, column)
+            # 1.5 points: two machines of the same kind (same packages, other CPUs) gave the
+            # decoupled row's t!=0 cells 1.04 points apart (rounding in a 30-step fit)
+            assert value == pytest.approx(float(cell), abs=1.5), (name, column)
     for line in (*TABLE_GUIDE, GAINS_HEADING):
         assert line in shown
 

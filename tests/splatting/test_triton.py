@@ -361,5 +361,7 @@ def test_a_kernel_failure_warns_once_under_auto_and_raises_under_triton(
 
 
 def test_bad_backend_names_the_choices() -> None:
-    with pytest.raises(ValueError, match=r"backend: expected 'torch', 'auto', 'gsplat' or 'triton'"):
+    with pytest.raises(
+        ValueError, match=r"backend: expected 'torch', 'auto', 'gsplat' or 'triton'"
+    ):
         SplatConfig(backend="cuda")  # type: ignore[arg-type]

@@ -148,9 +148,10 @@ def bin_and_composite(
     ``conics``, ``max_sigma``: ``(I, N, ...)`` per image, for the binning (no gradient);
     ``compositing_means2d`` ``(M, 2)``, ``conics`` (flattened), ``opacities`` ``(M,)``,
     ``colors`` ``(M, D)``: what the compositing reads and differentiates."""
-    binning = tuple(
+    means2d, extents, depths, bin_conics, max_sigma = (
         t.detach().float().contiguous() for t in (means2d, extents, depths, conics, max_sigma)
     )
+    binning = (means2d, extents, depths, bin_conics, max_sigma)
     shape = (*size, config.tile_size)
     rules = CompositeRules(config.max_alpha, config.alpha_min, config.transmittance_min)
     tensors = (
@@ -170,7 +171,7 @@ def bin_and_composite(
 
 @torch._dynamo.disable
 def _eager(
-    binning: tuple[Tensor, ...],
+    binning: tuple[Tensor, Tensor, Tensor, Tensor, Tensor],
     tensors: tuple[Tensor, ...],
     shape: tuple[int, int, int],
     rules: CompositeRules,
@@ -247,15 +248,22 @@ class _Composite(torch.autograd.Function):
             _rules(rules),
             absgrad_sink,
         )
-        ctx.mark_non_differentiable(stop)
         return tiles, transmittance
 
     @staticmethod
     def backward(ctx: Any, grad_tiles: Tensor, grad_t: Tensor) -> tuple[Tensor | None, ...]:
         from dego.splatting import triton_kernels
 
+        means2d, conics, opacities, colors, pairs, starts, transmittance, stop = ctx.saved_tensors
         grads = triton_kernels.backward(
-            *ctx.saved_tensors,
+            means2d,
+            conics,
+            opacities,
+            colors,
+            pairs,
+            starts,
+            transmittance,
+            stop,
             grad_tiles,
             grad_t,
             ctx.tiles_x,
@@ -272,6 +280,7 @@ class _Composite(torch.autograd.Function):
 # static output shapes (the pair list's length is data-dependent, and dynamo breaks the
 # graph on an operator whose output shape is); its backward operator bins again (the
 # binning is deterministic) rather than keep the pair list. Both call the same kernels.
+
 
 @torch.library.custom_op("dego::triton_rasterize", mutates_args=())
 def _rasterize(

@@ -39,9 +39,7 @@ def _tile_pixels(tile, tiles_x, tiles_per_image, S: tl.constexpr, PIX: tl.conste
 
 
 @triton.jit
-def _batch_alpha(
-    means_ptr, conics_ptr, opacities_ptr, ids, valid, px, py, max_alpha, alpha_min
-):
+def _batch_alpha(means_ptr, conics_ptr, opacities_ptr, ids, valid, px, py, max_alpha, alpha_min):
     """Alpha ``(BLOCK_G, PIX)`` of a batch of Gaussians at a tile's pixels, as
     :func:`dego.splatting.composite._alphas` computes it, with what backward needs."""
     mx = tl.load(means_ptr + ids * 2, mask=valid, other=0.0)
