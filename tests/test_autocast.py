@@ -4,6 +4,9 @@ and bad input still gets the eager errors."""
 
 from __future__ import annotations
 
+import importlib.util
+from typing import Any
+
 import pytest
 import torch
 from jaxtyping import TypeCheckError
@@ -26,10 +29,32 @@ from tests.helpers.compile_step import (
 HALF = [torch.bfloat16, torch.float16]
 
 
-@pytest.mark.parametrize("dtype", HALF, ids=["bfloat16", "float16"])
-def test_the_training_step_runs_under_autocast_with_gradients(dtype: torch.dtype) -> None:
-    inputs, modules = make_inputs(), make_modules()
-    with torch.autocast("cpu", dtype=dtype):
+def _cuda_and(backend: str) -> Any:
+    marks = [pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")]
+    if backend == "triton":
+        marks.append(
+            pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="needs triton")
+        )
+    return marks
+
+
+@pytest.mark.parametrize(
+    ("dtype", "device", "backend"),
+    [
+        pytest.param(torch.bfloat16, "cpu", "torch", id="bfloat16"),
+        pytest.param(torch.float16, "cpu", "torch", id="float16"),
+        pytest.param(torch.bfloat16, "cuda", "torch", marks=_cuda_and("torch"), id="cuda-bf16"),
+        pytest.param(
+            torch.bfloat16, "cuda", "triton", marks=_cuda_and("triton"), id="cuda-bf16-triton"
+        ),
+    ],
+)
+def test_the_training_step_runs_under_autocast_with_gradients(
+    dtype: torch.dtype, device: str, backend: str
+) -> None:
+    inputs = make_inputs(device=device, backend=backend)
+    modules = make_modules(device=device)
+    with torch.autocast(device, dtype=dtype):
         loss, values = training_step(inputs, modules)
     loss.backward()
     assert loss.dtype == torch.float32 and torch.isfinite(loss)

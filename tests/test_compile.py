@@ -4,6 +4,8 @@ runs while dynamo traces agrees with jaxtyping's."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 import torch
 import torch._dynamo
@@ -26,6 +28,7 @@ from tests.helpers.compile_step import (
     op_functions,
     training_step,
 )
+from tests.helpers.op_contract import CUDA
 
 # Graph breaks per op (torch._dynamo.explain's count), the goal of issue 24: at most 3,
 # none of them from a host sync; the data-dependent loops (tile binning and compositing,
@@ -45,17 +48,42 @@ def _relative_error(a: Tensor, b: Tensor) -> float:
     return float((a - b).abs().max() / a.abs().max().clamp_min(1e-30)) if a.numel() else 0.0
 
 
+def _triton_on(device: str) -> Any:
+    """Skip marks of the Triton backend on ``device`` (the interpreter on CPU)."""
+    import importlib.util
+
+    missing = importlib.util.find_spec("triton") is None
+    if not missing and device == "cpu":
+        from dego.splatting import triton_backend
+
+        missing = not triton_backend.interpreting()
+    return pytest.mark.skipif(missing, reason="needs triton (and on CPU its interpreter)")
+
+
+STEP_PARAMS = [
+    pytest.param("cpu", "torch", id="cpu-torch"),
+    pytest.param("cpu", "triton", marks=_triton_on("cpu"), id="cpu-triton-interpreted"),
+    pytest.param("cuda", "torch", marks=CUDA, id="cuda-torch"),
+    pytest.param("cuda", "triton", marks=[CUDA, _triton_on("cuda")], id="cuda-triton"),
+]
+
+
 @pytest.mark.slow
-def test_every_op_in_one_compiled_step_equals_eager(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(("device", "backend"), STEP_PARAMS)
+def test_every_op_in_one_compiled_step_equals_eager(
+    device: str, backend: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # Dynamo's capture is what is tested here (the false jaxtyping error, graph breaks,
-    # resume frames); "eager" runs its graphs as captured. The chunk kernels compile with
-    # the same backend here; inductor's code for them is tested below.
+    # resume frames); "eager" runs its graphs as captured, "aot_eager" also traces the
+    # backward (the Triton operators' fake implementations and autograd). The chunk kernels
+    # compile with the same backend here; inductor's code for them is tested below.
     monkeypatch.setattr(composite, "COMPILED_KERNELS", "eager")
-    compiled = torch.compile(training_step, backend="eager")
+    compiled = torch.compile(training_step, backend="aot_eager" if backend == "triton" else "eager")
     for seed in (0, 1):  # the second call used to fail with a false jaxtyping error
         results = []
         for step in (training_step, compiled):
-            inputs, modules = make_inputs(seed), make_modules()
+            inputs = make_inputs(seed, device=device, backend=backend)
+            modules = make_modules(device=device)
             loss, values = step(inputs, modules)
             loss.backward()
             results.append((loss.detach(), values, inputs.means.grad, inputs.features.grad))

@@ -4,6 +4,9 @@ rejected with an error that names the argument (DESIGN.md section 2, "Typing")."
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import importlib.util
 import math
 
 import pytest
@@ -563,6 +566,32 @@ CASES.append(
         },
         lambda n: {"gaussians.means": (n, 2, 3, 3), "rigid_mask": (n, 3)},
     )
+)
+
+
+def _triton_skips() -> dict[str, str]:
+    """Where ``backend="triton"`` cannot run: without triton nowhere, on the CPU only through
+    Triton's interpreter (tests/conftest.py turns it on where no GPU is present)."""
+    if importlib.util.find_spec("triton") is None:
+        return {"*": "needs triton (the `triton` extra)"}
+    from dego.splatting import triton_backend
+
+    if not triton_backend.interpreting():
+        return {"cpu": "Triton's interpreter is off: the Triton backend runs on CUDA only"}
+    return {}
+
+
+# The Triton backend keeps the torch path's contract: the same outputs, dtypes, devices,
+# empty inputs and errors (the checks run before the backend is chosen, and must stay so).
+CASES.extend(
+    dataclasses.replace(
+        case,
+        name=case.name + "[triton]",
+        fn=functools.partial(dego.splat, backend="triton"),
+        skip=_triton_skips(),
+    )
+    for case in list(CASES)
+    if case.fn is dego.splat
 )
 
 

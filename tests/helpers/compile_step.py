@@ -63,23 +63,28 @@ class StepInputs:
     images: Tensor  # (1, T, V, 3, H, W) teacher input
     labels: Tensor  # (X, Y, Z) ground truth on GRID
     directions: Tensor  # (R, 3)
+    backend: str = "torch"  # splat's backend (the adapter's too)
 
 
-def make_inputs(seed: int = 0, n: int = 200) -> StepInputs:
+def make_inputs(
+    seed: int = 0, n: int = 200, *, device: str = "cpu", backend: str = "torch"
+) -> StepInputs:
+    """The same values on every device (drawn on the CPU, then moved)."""
     g = torch.Generator().manual_seed(seed)
     w2c, k = cameras()
     means = (torch.rand(1, n, 3, generator=g) - 0.5) * torch.tensor([14.0, 14.0, 3.0])
     return StepInputs(
-        means=means.requires_grad_(True),
-        quats=torch.randn(1, n, 4, generator=g),
-        scales=0.2 + 0.5 * torch.rand(1, n, 3, generator=g),
-        opacities=0.2 + 0.7 * torch.rand(1, n, generator=g),
-        features=torch.randn(1, n, CHANNELS, generator=g).requires_grad_(True),
-        world_to_cam=w2c,
-        intrinsics=k,
-        images=torch.rand(1, 2, 2, 3, HEIGHT, WIDTH, generator=g),
-        labels=torch.randint(0, 18, GRID.shape, generator=g),
-        directions=torch.randn(40, 3, generator=g),
+        means=means.to(device).requires_grad_(True),
+        quats=torch.randn(1, n, 4, generator=g).to(device),
+        scales=(0.2 + 0.5 * torch.rand(1, n, 3, generator=g)).to(device),
+        opacities=(0.2 + 0.7 * torch.rand(1, n, generator=g)).to(device),
+        features=torch.randn(1, n, CHANNELS, generator=g).to(device).requires_grad_(True),
+        world_to_cam=w2c.to(device),
+        intrinsics=k.to(device),
+        images=torch.rand(1, 2, 2, 3, HEIGHT, WIDTH, generator=g).to(device),
+        labels=torch.randint(0, 18, GRID.shape, generator=g).to(device),
+        directions=torch.randn(40, 3, generator=g).to(device),
+        backend=backend,
     )
 
 
@@ -92,7 +97,17 @@ class StepModules:
     rayiou: RayIoU
 
 
-def make_modules(seed: int = 0) -> StepModules:
+def make_modules(seed: int = 0, *, device: str = "cpu") -> StepModules:
+    modules = _make_modules(seed)
+    modules.deformation.to(device)
+    modules.teacher.to(device)
+    modules.targets.to(device)
+    modules.occupancy.to(device)
+    modules.rayiou.to(device)
+    return modules
+
+
+def _make_modules(seed: int) -> StepModules:
     torch.manual_seed(seed)
     deformation = DecoupledDeformation(CHANNELS, hidden_dim=32, head_hidden=32, depth=2)
     with torch.no_grad():  # non-zero heads: the zero-initialised identity would hide errors
@@ -166,7 +181,13 @@ def gaussian_set(inputs: StepInputs) -> GaussianSet:
 
 def render(gaussians: GaussianSet, inputs: StepInputs) -> Tensor:
     """``(1, V, C, H, W)`` rendered features."""
-    out = splat(gaussians, inputs.world_to_cam, inputs.intrinsics, (HEIGHT, WIDTH))
+    out = splat(
+        gaussians,
+        inputs.world_to_cam,
+        inputs.intrinsics,
+        (HEIGHT, WIDTH),
+        backend=inputs.backend,  # type: ignore[arg-type]
+    )
     return out.features
 
 
@@ -182,12 +203,13 @@ def adapter(gaussians: GaussianSet, inputs: StepInputs) -> Tensor:
         WIDTH,
         HEIGHT,
         render_mode="RGB+ED",
+        backend=inputs.backend,  # type: ignore[arg-type]
     )
     return colors.sum() + alphas.sum()
 
 
 def deform(gaussians: GaussianSet, modules: StepModules) -> DeformationOutput:
-    times = torch.tensor([0.0, 1.0], dtype=gaussians.dtype)
+    times = torch.tensor([0.0, 1.0], dtype=gaussians.dtype, device=gaussians.device)
     return modules.deformation(gaussians, gaussians.features, times)
 
 
@@ -206,10 +228,11 @@ def training_step(inputs: StepInputs, modules: StepModules) -> tuple[Tensor, dic
     distill = distillation_loss(rendered, teacher.detach())
     voxels = voxelize(last, GRID)
     adapted = adapter(last, inputs)
-    distance, hit = cast_rays(inputs.labels, torch.zeros(1, 3), inputs.directions, GRID)
+    origins = torch.zeros(1, 3, device=inputs.labels.device)
+    distance, hit = cast_rays(inputs.labels, origins, inputs.directions, GRID)
     pred = voxels.features.argmax(-1)[0] % 18
     modules.occupancy.update(pred, inputs.labels, mask=None)
-    modules.rayiou.update(pred, inputs.labels, torch.zeros(1, 3))
+    modules.rayiou.update(pred, inputs.labels, origins)
     loss = (
         distill
         + 1e-3 * rendered.square().mean()

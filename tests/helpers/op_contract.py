@@ -70,6 +70,9 @@ class OpCase:
         bad: the bad inputs.
         xfail: ``{check: bug}`` for checks (``"shapes"``, ``"empty"``, ``"dtype:float16"``,
             ``"device:cpu"``...) known to fail.
+        skip: ``{"*": why}`` skips every check of the case here (an optional package is
+            missing, say), ``{"cpu": why}`` every check that runs on the CPU (all but
+            ``"device:cuda"``).
     """
 
     name: str
@@ -82,6 +85,7 @@ class OpCase:
     size: int = 3
     bad: tuple[BadInput, ...] = ()
     xfail: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    skip: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def __repr__(self) -> str:
         return f"OpCase({self.name})"
@@ -169,6 +173,9 @@ def check_bad_input(case: OpCase, bad: BadInput) -> None:
 
 def _param(case: OpCase, check: str, *values: Any, extra: str | None = None) -> Any:
     marks = []
+    skip = case.skip.get("*") or (None if check == "device:cuda" else case.skip.get("cpu"))
+    if skip:
+        marks.append(pytest.mark.skip(reason=skip))
     reason = extra or case.xfail.get(check)
     if reason:
         marks.append(pytest.mark.xfail(strict=True, reason=reason))

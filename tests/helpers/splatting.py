@@ -153,14 +153,16 @@ class Scene:
     def replace(self, **changes: Any) -> Scene:
         return dataclasses.replace(self, **changes)
 
-    def to(self, dtype: torch.dtype) -> Scene:
+    def to(self, target: torch.dtype | torch.device | str) -> Scene:
+        """Every tensor in another dtype or on another device."""
+
         def cast(t: Tensor | None) -> Tensor | None:
-            return None if t is None else t.to(dtype)
+            return None if t is None else t.to(target)
 
         return self.replace(
-            gaussians=self.gaussians.to(dtype),
-            world_to_cam=self.world_to_cam.to(dtype),
-            intrinsics=self.intrinsics.to(dtype),
+            gaussians=self.gaussians.to(target),
+            world_to_cam=self.world_to_cam.to(target),
+            intrinsics=self.intrinsics.to(target),
             features=cast(self.features),
             background=cast(self.background),
         )

@@ -47,19 +47,6 @@ def _devices() -> list[Any]:
 DEVICES = _devices() if importlib.util.find_spec("triton") else ["cpu"]
 
 
-def _on(scene: Scene, device: str) -> Scene:
-    def move(t: Tensor | None) -> Tensor | None:
-        return None if t is None else t.to(device)
-
-    return scene.replace(
-        gaussians=scene.gaussians.to(device),
-        world_to_cam=scene.world_to_cam.to(device),
-        intrinsics=scene.intrinsics.to(device),
-        features=move(scene.features),
-        background=move(scene.background),
-    )
-
-
 def _relative(a: Tensor, b: Tensor) -> float:
     if a.numel() == 0:
         return 0.0
@@ -131,7 +118,7 @@ def _scene(
         batch, n, size, seed=3, feature_dim=channels or None, dtype=torch.float32, **kw
     )
     w2c, k = make_cameras(batch, 2, size, seed=3, dtype=torch.float32)
-    return _on(Scene(gs, w2c, k, size), device)
+    return Scene(gs, w2c, k, size).to(device)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -196,7 +183,7 @@ def test_early_termination_empty_tiles_and_a_gaussian_over_every_tile(device: st
         opacities=opacities[None],
         features=torch.rand(1, n, 3, generator=g),
     )
-    scene = _on(Scene(gs, w2c, k, size), device)
+    scene = Scene(gs, w2c, k, size).to(device)
     out = render(scene, backend="triton")
     assert float(out.alpha.max()) > 1 - 1.1e-4  # some pixels stopped
     assert_matches_torch(scene)

@@ -91,10 +91,14 @@ def splat(
         depth_mode: ``"expected"`` sum(w z) / max(alpha, 1e-10) (gsplat's ``ED``),
             ``"accumulated"`` sum(w z) (gsplat's ``D``, what DeGO and GaussianFlowOcc
             train with), or ``"none"``; z is the camera z of the Gaussian's mean.
-        backend: ``"torch"`` (this implementation, any device), ``"gsplat"`` (gsplat's CUDA
-            rasteriser, needs ``pip install "dego-occupancy[gsplat]"`` and CUDA tensors) or
-            ``"auto"`` (gsplat when it is usable and the settings match its compiled
-            constants).
+        backend: ``"torch"`` (this implementation, any device, any float dtype),
+            ``"triton"`` (dego's Triton compositing kernels: CUDA tensors, float32 inside,
+            no C++ build; needs ``pip install "dego-occupancy[triton]"``; float64 renders
+            with the torch path), ``"gsplat"`` (gsplat's CUDA rasteriser, needs
+            ``pip install "dego-occupancy[gsplat]"`` and CUDA tensors) or ``"auto"`` (in
+            order: gsplat when it is usable and the settings match its compiled constants,
+            Triton on CUDA when installed and its kernels compile there, else the torch
+            path; never Triton on CPU).
         chunk_size: Gaussians composited per tile per step.
         max_pairs: bound on (Gaussian, pixel) pairs held at once; the compositing peak is
             about ``max_pairs * itemsize * 15`` bytes (backward), whatever N is. Smaller

@@ -321,24 +321,10 @@ def _rasterize(
 
 
 @_rasterize.register_fake
-def _(
-    bin_means2d: Tensor,
-    bin_extents: Tensor,
-    bin_depths: Tensor,
-    bin_conics: Tensor,
-    bin_max_sigma: Tensor,
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    height: int,
-    width: int,
-    tile_size: int,
-    max_alpha: float,
-    alpha_min: float,
-    transmittance_min: float,
-) -> tuple[Tensor, Tensor, Tensor]:
-    size = tile_size
+def _(*args: Any) -> tuple[Tensor, Tensor, Tensor]:
+    # the operator's arguments, in order: 5 binning tensors (bin_depths is (I, N)), the 4
+    # compositing tensors (colors is (M, D)), height, width, tile_size, then the rules
+    bin_depths, colors, (height, width, size) = args[2], args[8], args[9:12]
     tiles = bin_depths.shape[0] * math.ceil(height / size) * math.ceil(width / size)
     return (
         colors.new_empty(tiles, size, size, colors.shape[1]),
@@ -393,32 +379,9 @@ def _rasterize_backward(
 
 
 @_rasterize_backward.register_fake
-def _(
-    bin_means2d: Tensor,
-    bin_extents: Tensor,
-    bin_depths: Tensor,
-    bin_conics: Tensor,
-    bin_max_sigma: Tensor,
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    transmittance: Tensor,
-    stop: Tensor,
-    grad_tiles: Tensor,
-    grad_transmittance: Tensor,
-    height: int,
-    width: int,
-    tile_size: int,
-    max_alpha: float,
-    alpha_min: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    return (
-        torch.empty_like(means2d),
-        torch.empty_like(conics),
-        torch.empty_like(opacities),
-        torch.empty_like(colors),
-    )
+def _(*args: Any) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    # arguments 5-8 are the compositing tensors, whose gradients are returned
+    return tuple(torch.empty_like(t) for t in args[5:9])  # type: ignore[return-value]
 
 
 def _setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Tensor, ...]) -> None:
