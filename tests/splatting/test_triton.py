@@ -347,6 +347,20 @@ def test_a_kernel_failure_warns_once_under_auto_and_raises_under_triton(
         render(scene, backend="triton")
 
 
+@pytest.mark.parametrize("mode", [torch.no_grad, torch.inference_mode])
+def test_the_first_call_may_come_without_gradients(
+    mode: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The one-time probe runs forward and backward: a first call under ``no_grad`` or
+    ``inference_mode`` (an evaluation loop) must not mistake that for a broken GPU."""
+    monkeypatch.setattr(triton_backend, "_PROBED", {})
+    scene = small_scene().to(torch.float32)
+    with mode():
+        out = render(scene, backend="triton")
+    assert triton_backend._PROBED == {"cpu": None}
+    torch.testing.assert_close(out.features, render(scene).features, rtol=0, atol=1e-5)
+
+
 def test_bad_backend_names_the_choices() -> None:
     with pytest.raises(
         ValueError, match=r"backend: expected 'torch', 'auto', 'gsplat' or 'triton'"

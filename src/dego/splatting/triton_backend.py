@@ -10,10 +10,10 @@ for tests). ``backend="auto"`` takes this path on CUDA when triton is installed 
 kernels compiled on the device (a one-time probe; a failure warns once and keeps the torch
 path), and never on CPU.
 
-Inside ``torch.compile`` the binning and the compositing are custom operators
-(``dego::triton_tile_lists``, ``dego::triton_composite``) with fake implementations, so
-dynamo traces through them without a graph break; ``absgrad`` needs a Python callback in
-backward and runs eagerly.
+Inside ``torch.compile`` the binning and the compositing are one custom operator
+(``dego::triton_rasterize``, with ``dego::triton_rasterize_backward``) with fake
+implementations, so dynamo traces through it without a graph break; ``absgrad`` needs a
+Python callback in backward and runs eagerly (one graph break).
 """
 
 from __future__ import annotations
@@ -105,29 +105,36 @@ def _device_name(device: torch.device) -> str:
 
 @torch._dynamo.disable
 def _probe(device: torch.device) -> str | None:
-    """Compile and run both kernels once on a tiny input; the error text if they fail."""
+    """Compile and run both kernels once on a tiny input; the error text if they fail.
+    Runs with gradients on, whatever the caller's mode (``no_grad``, ``inference_mode``)."""
     try:
-        means2d = torch.tensor([[8.0, 8.0]], device=device, requires_grad=True)
-        conics = torch.tensor([[0.1, 0.0, 0.1]], device=device, requires_grad=True)
-        opacities = torch.tensor([0.5], device=device, requires_grad=True)
-        colors = torch.ones(1, 1, device=device, requires_grad=True)
-        lists = TileLists(
-            gaussians=torch.zeros(1, dtype=torch.int64, device=device),
-            starts=torch.zeros(1, dtype=torch.int64, device=device),
-            counts=torch.ones(1, dtype=torch.int64, device=device),
-            tiles_x=1,
-            tiles_y=1,
-        )
-        rules = CompositeRules(0.999, 1 / 255, 1e-4)
-        tiles, transmittance = _Composite.apply(
-            means2d, conics, opacities, colors, lists, 16, rules, None
-        )
-        (tiles.sum() + transmittance.sum()).backward()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        with torch.inference_mode(False), torch.enable_grad():
+            _run_probe(device)
     except Exception as error:  # any failure of the compiler or the driver
         return f"{type(error).__name__}: {error}".strip().splitlines()[0][:300]
     return None
+
+
+def _run_probe(device: torch.device) -> None:
+    """One Gaussian in one tile, forward and backward, through the eager node."""
+    means2d = torch.tensor([[8.0, 8.0]], device=device, requires_grad=True)
+    conics = torch.tensor([[0.1, 0.0, 0.1]], device=device, requires_grad=True)
+    opacities = torch.tensor([0.5], device=device, requires_grad=True)
+    colors = torch.ones(1, 1, device=device, requires_grad=True)
+    lists = TileLists(
+        gaussians=torch.zeros(1, dtype=torch.int64, device=device),
+        starts=torch.zeros(1, dtype=torch.int64, device=device),
+        counts=torch.ones(1, dtype=torch.int64, device=device),
+        tiles_x=1,
+        tiles_y=1,
+    )
+    rules = CompositeRules(0.999, 1 / 255, 1e-4)
+    tiles, transmittance = _Composite.apply(
+        means2d, conics, opacities, colors, lists, 16, rules, None
+    )
+    (tiles.sum() + transmittance.sum()).backward()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def bin_and_composite(
