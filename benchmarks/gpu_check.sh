@@ -19,10 +19,11 @@
 # and writes OUT_DIR/report.md (one table: step, command, status, seconds) with each
 # step's log beside it. Every step has its own time limit (the limits add up to at most
 # 8 minutes; tests/test_gpu_check.py checks the sum) and the script goes on after a
-# failure. gsplat's extension is built in the background during the tests and loaded once
-# before the benchmarks (its load takes > 30 s in a new process; each benchmark's untimed
-# warm-up call pays it again, never a timed one). With --device cpu (or no CUDA) it is a dry run: the CUDA steps
-# are listed as skipped and the report is still written (the test-suite runs this).
+# failure. gsplat's extension is built in the background while the tests run (bounded by
+# their limit); loading it takes > 30 s in every new process, which each benchmark pays in
+# its untimed warm-up call, never in a timed one. With --device cpu (or no CUDA) it is a
+# dry run: the CUDA steps are listed as skipped and the report is still written (the
+# test-suite runs this).
 set -uo pipefail
 
 usage() { echo "usage: $0 OUT_DIR [--device cuda|cpu] [--wheels DIR]" >&2; exit 2; }
