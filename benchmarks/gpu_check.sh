@@ -108,7 +108,7 @@ if [ "$GSPLAT" = building ]; then
     grep -q "exit 0" "$OUT/gsplat_build.log" && GSPLAT=ready || GSPLAT="failed to build"
 fi
 step bench_splat 65 yes "$PY" benchmarks/bench_splat.py --device "$DEVICE" --repeats 10 --skip-w2
-step bench_splat_sweep 110 yes "$PY" benchmarks/bench_splat_sweep.py --device "$DEVICE" --repeats 3 --budget 85
+step bench_splat_sweep 110 yes "$PY" benchmarks/bench_splat_sweep.py --device "$DEVICE" --repeats 3 --budget 85 --torch-max-n 10000
 step bench_compile 40 yes "$PY" benchmarks/bench_compile.py --device "$DEVICE" --repeats 5
 if [ "$GSPLAT" = ready ]; then
     step gsplat_parity 30 yes "$PY" benchmarks/gsplat_parity.py
