@@ -204,6 +204,8 @@ def test_no_gaussians_and_batches(device: str) -> None:
     assert torch.equal(out.alpha, torch.zeros_like(out.alpha))
     assert_matches_torch(empty)
     assert_matches_torch(_scene(device, batch=3, n=8))
+    # nothing to composite but alpha: no features and no depth (D = 0)
+    assert_matches_torch(_scene(device, batch=1, n=8, channels=0), depth_mode="none")
 
 
 @pytest.mark.slow
