@@ -327,6 +327,14 @@ def test_backend_triton_without_triton_names_the_extra(monkeypatch: pytest.Monke
     assert torch.equal(auto.features, render(scene.to(torch.float32)).features)
 
 
+def test_backend_triton_needs_torch_custom_ops(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(triton_backend, "CUSTOM_OPS", False)  # torch < 2.4
+    scene = small_scene().to(torch.float32)
+    with pytest.raises(ImportError, match=r"backend: 'triton' needs torch >= 2.4"):
+        render(scene, backend="triton")
+    assert torch.equal(render(scene, backend="auto").features, render(scene).features)
+
+
 def test_backend_triton_on_cpu_without_the_interpreter_says_cuda(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

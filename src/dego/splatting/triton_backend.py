@@ -11,15 +11,15 @@ kernels compiled on the device (a one-time probe; a failure warns once and keeps
 path), and never on CPU.
 
 Inside ``torch.compile`` the binning and the compositing are one custom operator
-(``dego::triton_rasterize``, with ``dego::triton_rasterize_backward``) with fake
-implementations, so dynamo traces through it without a graph break; ``absgrad`` needs a
-Python callback in backward and runs eagerly (one graph break).
+(``dego::triton_rasterize``, with ``dego::triton_rasterize_backward``; see
+:mod:`dego.splatting.triton_ops`, which needs torch >= 2.4) with fake implementations, so
+dynamo traces through it without a graph break; ``absgrad`` needs a Python callback in
+backward and runs eagerly (one graph break).
 """
 
 from __future__ import annotations
 
 import importlib.util
-import math
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -30,8 +30,13 @@ from torch import Tensor
 from dego._typing import _is_compiling
 from dego.gaussians import GaussianSet
 from dego.splatting.composite import CompositeRules
-from dego.splatting.tiles import TileLists, build_tile_lists
+from dego.splatting.tiles import TileLists
 from dego.splatting.types import SplatConfig
+
+CUSTOM_OPS = hasattr(torch.library, "custom_op")
+"""torch >= 2.4: the operators that let ``torch.compile`` trace the Triton path."""
+if CUSTOM_OPS:
+    from dego.splatting.triton_ops import tile_lists
 
 INSTALL = "pip install 'dego-occupancy[triton]'"
 
@@ -62,6 +67,13 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
     if not installed():
         if strict:
             raise ImportError(f"backend: 'triton' needs triton ({INSTALL})")
+        return False
+    if not CUSTOM_OPS:
+        if strict:
+            raise ImportError(
+                f"backend: 'triton' needs torch >= 2.4 (torch.library.custom_op), "
+                f"got torch {torch.__version__}"
+            )
         return False
     device = gaussians.device
     if not _runs_on(device, strict):
@@ -184,30 +196,8 @@ def _eager(
     rules: CompositeRules,
     absgrad_sink: Callable[[Tensor], None] | None,
 ) -> tuple[Tensor, Tensor]:
-    lists = _lists(*binning, *shape)
+    lists = tile_lists(*binning, *shape)
     return _Composite.apply(*tensors, lists, shape[2], rules, absgrad_sink)
-
-
-def _lists(
-    means2d: Tensor,
-    extents: Tensor,
-    depths: Tensor,
-    conics: Tensor,
-    max_sigma: Tensor,
-    height: int,
-    width: int,
-    tile_size: int,
-) -> TileLists:
-    return build_tile_lists(
-        means2d,
-        extents,
-        depths,
-        (height, width),
-        tile_size,
-        conics=conics,
-        max_sigma=max_sigma,
-        keyed=True,
-    )
 
 
 def _rules(rules: CompositeRules) -> tuple[float, float, float]:
@@ -281,135 +271,6 @@ class _Composite(torch.autograd.Function):
         if ctx.sink is not None:
             ctx.sink(grads[4])
         return (*grads[:4], None, None, None, None)
-
-
-# The operators torch.compile sees: binning and compositing in one forward operator with
-# static output shapes (the pair list's length is data-dependent, and dynamo breaks the
-# graph on an operator whose output shape is); its backward operator bins again (the
-# binning is deterministic) rather than keep the pair list. Both call the same kernels.
-
-
-@torch.library.custom_op("dego::triton_rasterize", mutates_args=())
-def _rasterize(
-    bin_means2d: Tensor,
-    bin_extents: Tensor,
-    bin_depths: Tensor,
-    bin_conics: Tensor,
-    bin_max_sigma: Tensor,
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    height: int,
-    width: int,
-    tile_size: int,
-    max_alpha: float,
-    alpha_min: float,
-    transmittance_min: float,
-) -> tuple[Tensor, Tensor, Tensor]:
-    from dego.splatting import triton_kernels
-
-    lists = _lists(
-        bin_means2d, bin_extents, bin_depths, bin_conics, bin_max_sigma, height, width, tile_size
-    )
-    return triton_kernels.forward(
-        means2d,
-        conics,
-        opacities,
-        colors,
-        lists.gaussians,
-        lists.starts,
-        lists.counts,
-        lists.tiles_x,
-        lists.tiles_x * lists.tiles_y,
-        tile_size,
-        (max_alpha, alpha_min, transmittance_min),
-    )
-
-
-@_rasterize.register_fake
-def _(*args: Any) -> tuple[Tensor, Tensor, Tensor]:
-    # the operator's arguments, in order: 5 binning tensors (bin_depths is (I, N)), the 4
-    # compositing tensors (colors is (M, D)), height, width, tile_size, then the rules
-    bin_depths, colors, (height, width, size) = args[2], args[8], args[9:12]
-    tiles = bin_depths.shape[0] * math.ceil(height / size) * math.ceil(width / size)
-    return (
-        colors.new_empty(tiles, size, size, colors.shape[1]),
-        colors.new_empty(tiles, size, size),
-        torch.empty(tiles, size, size, dtype=torch.int32, device=colors.device),
-    )
-
-
-@torch.library.custom_op("dego::triton_rasterize_backward", mutates_args=())
-def _rasterize_backward(
-    bin_means2d: Tensor,
-    bin_extents: Tensor,
-    bin_depths: Tensor,
-    bin_conics: Tensor,
-    bin_max_sigma: Tensor,
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    transmittance: Tensor,
-    stop: Tensor,
-    grad_tiles: Tensor,
-    grad_transmittance: Tensor,
-    height: int,
-    width: int,
-    tile_size: int,
-    max_alpha: float,
-    alpha_min: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    from dego.splatting import triton_kernels
-
-    lists = _lists(
-        bin_means2d, bin_extents, bin_depths, bin_conics, bin_max_sigma, height, width, tile_size
-    )
-    grads = triton_kernels.backward(
-        means2d,
-        conics,
-        opacities,
-        colors,
-        lists.gaussians,
-        lists.starts,
-        transmittance,
-        stop,
-        grad_tiles,
-        grad_transmittance,
-        lists.tiles_x,
-        lists.tiles_x * lists.tiles_y,
-        (max_alpha, alpha_min, 0.0),
-        False,
-    )
-    return grads[0], grads[1], grads[2], grads[3]
-
-
-@_rasterize_backward.register_fake
-def _(*args: Any) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    # arguments 5-8 are the compositing tensors, whose gradients are returned
-    return tuple(torch.empty_like(t) for t in args[5:9])  # type: ignore[return-value]
-
-
-def _setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Tensor, ...]) -> None:
-    _, transmittance, stop = output
-    ctx.save_for_backward(*inputs[:9], transmittance, stop)
-    ctx.options = inputs[9:14]  # height, width, tile_size, max_alpha, alpha_min
-
-
-def _backward(
-    ctx: Any, grad_tiles: Tensor, grad_transmittance: Tensor, _grad_stop: Tensor | None
-) -> tuple[Tensor | None, ...]:
-    grads = torch.ops.dego.triton_rasterize_backward(
-        *ctx.saved_tensors,
-        grad_tiles.contiguous(),
-        grad_transmittance.contiguous(),
-        *ctx.options,
-    )
-    return (None,) * 5 + tuple(grads) + (None,) * 6
-
-
-_rasterize.register_autograd(_backward, setup_context=_setup_context)
 
 
 __all__ = ["INSTALL", "bin_and_composite", "installed", "interpreting", "usable"]
