@@ -209,14 +209,13 @@ def test_no_gaussians_and_batches(device: str) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("device", DEVICES)
 @settings(max_examples=10, deadline=None)
 @given(scene=scenes(max_n=10, max_batch=1, dtype=torch.float32))
-def test_random_scenes_match_the_torch_path(scene: Scene) -> None:
+def test_random_scenes_match_the_torch_path(device: str, scene: Scene) -> None:
     # the interpreter runs every tile in Python: small scenes, and the kernels' own
     # gradients (the leaves' are the projection's, checked on the fixed scenes above)
-    if not triton_backend.interpreting():
-        pytest.skip("Triton's interpreter is off")
-    assert_matches_torch(scene, leaves=False)
+    assert_matches_torch(scene.to(device), leaves=False)
 
 
 @pytest.mark.slow
@@ -279,6 +278,22 @@ def test_bf16_autocast_computes_in_float32(device: str) -> None:
         theirs = render(scene.replace(features=half), backend="torch")
     assert ours.features.dtype == theirs.features.dtype
     torch.testing.assert_close(ours.features, theirs.features, rtol=0, atol=1e-5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_module_and_the_pipeline_take_the_backend(device: str) -> None:
+    from dego.splatting import pipeline
+
+    scene = _scene(device, batch=1, n=8)
+    args = (scene.gaussians, scene.world_to_cam, scene.intrinsics, scene.image_size)
+    expected = render(scene, backend="triton")
+    module = dego.DifferentiableSplatter(backend="triton")(*args)
+    config = SplatConfig(backend="triton")
+    last = pipeline.render(*args, None, None, config, layout="channels_last")
+    assert torch.equal(module.features, expected.features)
+    image = torch.cat([expected.features, expected.depth.unsqueeze(2)], 2).permute(0, 1, 3, 4, 2)
+    torch.testing.assert_close(last.image, image, rtol=0, atol=1e-6)
 
 
 def test_float64_renders_with_the_torch_path() -> None:
