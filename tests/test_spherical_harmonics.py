@@ -120,16 +120,31 @@ def test_direction_scale_is_ignored_and_bands_are_rotation_invariant() -> None:
         torch.testing.assert_close(power, expected, rtol=1e-12, atol=1e-12)
 
 
-def test_zero_direction_stays_zero_and_finite() -> None:
-    """As gsplat: a zero direction is not normalised (no NaN), the polynomials read (0, 0, 0)."""
-    d = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
-    c = torch.randn(1, 25, 2, dtype=torch.float64)
-    got = spherical_harmonics(4, d, c)
-    zero = torch.zeros(1, dtype=torch.float64)
-    expected = torch.stack(closed_forms(zero, zero, zero), -1)[0] @ c[0]
-    torch.testing.assert_close(got[0], expected, rtol=1e-12, atol=1e-12)
-    got.sum().backward()
-    assert d.grad is not None and bool(d.grad.isfinite().all())
+@pytest.mark.parametrize("scale", [1e30, 3e19, 1e-13, 1e-30, 1e-37])
+def test_every_finite_nonzero_direction_is_exact_at_any_magnitude(scale: float) -> None:
+    """Issue 38 (10): in float32 a norm above ~1.8e19 overflowed and one below 1e-12 was
+    clamped, and both silently left only the degree-0 term (an error of ~1.1). (Subnormal
+    inputs, below 1.2e-38, carry fewer digits themselves.)"""
+    d = random_directions(20, seed=5).float()
+    c = torch.randn(20, 25, 3)
+    expected = spherical_harmonics(4, d, c)
+    got = spherical_harmonics(4, d * scale, c)
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        (0.0, r"directions: 1 of 4 directions are zero"),
+        (float("nan"), "directions: 3 of 12 values are not finite"),
+    ],
+    ids=["zero", "nan"],
+)
+def test_zero_and_non_finite_directions_are_refused(value: float, message: str) -> None:
+    d = random_directions(4, seed=1)
+    d[2] = value
+    with pytest.raises(ValueError, match=message):
+        spherical_harmonics(2, d, torch.randn(4, 9, 3, dtype=torch.float64))
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])

@@ -14,10 +14,12 @@ ordered ``m = -l .. l``, with the Condon-Shortley phase, so that for a unit dire
 - ``l = 3, 4``: the analogous products of the Legendre factors in ``z`` with
   ``Re / Im (x + iy)^|m|`` (written out below).
 
-Directions need not be unit: they are divided by their norm (clamped at 1e-12, as
-``torch.nn.functional.normalize`` and gsplat do), so a zero direction stays zero and gives
-no NaN. Coefficients beyond ``(degree + 1)^2`` are ignored, so a degree-3 model can
-be evaluated at degree 1 (3DGS's progressive SH schedule).
+Directions need not be unit: each is first divided by its largest absolute component and
+then by its norm, so every finite non-zero direction gives its exact unit vector, however
+large or small (a plain norm overflows above ~1.8e19 in float32 and a clamped one drops the
+view-dependent bands below 1e-12). Zero and non-finite directions have no view direction:
+they are a ``ValueError`` naming ``directions``. Coefficients beyond ``(degree + 1)^2`` are
+ignored, so a degree-3 model can be evaluated at degree 1 (3DGS's progressive SH schedule).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from dego._policy import Check, finite_check, run_checks
 from dego._typing import typechecked
 
 MAX_DEGREE = 4
@@ -98,6 +101,22 @@ def _sh_basis(degree: int, directions: Tensor) -> Tensor:
     return torch.stack(basis, dim=-1)
 
 
+def _direction_checks(directions: Tensor) -> list[Check]:
+    """Directions must be finite and non-zero."""
+    zero = (directions == 0).all(dim=-1)
+
+    def error() -> Exception:
+        return ValueError(
+            f"directions: {int(zero.sum())} of {zero.numel()} directions are zero "
+            "(no view direction)"
+        )
+
+    return [
+        finite_check("directions", directions),
+        (~zero.any(), "directions: some directions are zero", error),
+    ]
+
+
 @typechecked
 def spherical_harmonics(
     degree: int,
@@ -125,7 +144,7 @@ def spherical_harmonics(
     Raises:
         ValueError: ``degree`` outside 0-4; ``coefficients`` with fewer than
             ``(degree + 1)^2`` coefficients; ``directions`` and ``coefficients`` of
-            different dtypes.
+            different dtypes; a zero or non-finite direction.
     """
     if isinstance(degree, bool) or not 0 <= degree <= MAX_DEGREE:
         raise ValueError(f"degree: expected an int in 0..{MAX_DEGREE}, got {degree!r}")
@@ -140,7 +159,11 @@ def spherical_harmonics(
             f"directions, coefficients: expected one dtype, got {directions.dtype} and "
             f"{coefficients.dtype}"
         )
-    unit = torch.nn.functional.normalize(directions, dim=-1)
+    run_checks(_direction_checks(directions))
+    # divided by the largest component first (to within one rounding), so that the norm
+    # neither overflows nor underflows
+    largest = directions.abs().amax(dim=-1, keepdim=True)
+    unit = torch.nn.functional.normalize(directions / largest, dim=-1)
     basis = _sh_basis(degree, unit)  # [..., needed]
     return (basis.unsqueeze(-1) * coefficients[..., :needed, :]).sum(dim=-2)
 

@@ -185,3 +185,13 @@ def test_cube_float32_is_as_close_to_float64_as_the_official_float32(
     names = ("density max", "density mean", "features max", "features mean")
     for name, mine, official in zip(names, ours, theirs, strict=True):
         assert mine <= RATIO * official + SLACK, f"{name}: ours {mine:.3g}, official {official:.3g}"
+
+
+@pytest.mark.parametrize("nbh", [2**40, 3000])
+def test_a_huge_cube_is_refused_naming_nbh_before_allocating(nbh: int) -> None:
+    """Issue 38 (11): nbh = 2**40 reached the allocator (its offset table alone is 16 TB)
+    before the memory guard; the guard now comes first and names ``nbh``."""
+    gs = make_gaussian_set((1,), 4, dtype=torch.float32, seed=0)
+    grid = VoxelGrid((-2.0, -2.0, -2.0), (2.0, 2.0, 2.0), 0.5)
+    with pytest.raises(ValueError, match=rf"voxelize: would need .*nbh = {nbh}"):
+        voxelize(gs, grid, neighborhood="cube", nbh=nbh)

@@ -126,6 +126,10 @@ def _evaluate_sh(
     centres = -(rotation.transpose(-1, -2) @ translation.unsqueeze(-1)).squeeze(-1)  # [..., C, 3]
     directions = means.unsqueeze(-3) - centres.unsqueeze(-2)  # [..., C, N, 3]
     directions = directions.to(coefficients.dtype)
+    # a Gaussian at a camera's centre has no view direction; it lies behind the near plane,
+    # so its colour is never drawn: any direction serves (spherical_harmonics refuses zero)
+    at_centre = (directions == 0).all(-1, keepdim=True)
+    directions = torch.where(at_centre, torch.ones_like(directions), directions)
     if not per_camera:  # [..., N, K, 3] -> [..., C, N, K, 3]
         coefficients = coefficients.unsqueeze(-4).expand(
             *directions.shape[:-1], *coefficients.shape[-2:]

@@ -10,6 +10,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from dego._geometry import scaled_rotation_gram
+from dego._policy import check_memory
 from dego.grid import VoxelGrid
 from dego.voxelizer.boxes import grid_float64
 from dego.voxelizer.inputs import check_size
@@ -109,8 +110,15 @@ def _sum_cube_pairs(
     log_normaliser = flat.log_normaliser
     kernel = Kernel.of(config)
     probabilistic = kernel.probabilistic
+    side = 2 * config.nbh + 1
+    cube_size = side**3
+    # before the cube's offset tables (int64: r, three per cell, one flat per cell) exist
+    check_memory(
+        "voxelize",
+        8.0 * side + 32.0 * cube_size,
+        f"nbh = {config.nbh}: the offsets of a (2 nbh + 1)^3 = {side}^3-cell cube",
+    )
     r = torch.arange(-config.nbh, config.nbh + 1, device=device)
-    cube_size = r.shape[0] ** 3
     per_chunk = max(1, config.chunk_size // cube_size)
     differentiable = requiring_grad(means, precision6, opacities, features, log_normaliser)
     grad_needed = bool(differentiable)
