@@ -61,6 +61,34 @@ def test_every_prediction_format_reads_the_same_labels(tree: dict) -> None:
         np.testing.assert_array_equal(labels.numpy(), tree["arrays"][token][0])
 
 
+@pytest.mark.parametrize("suffix", [".npz", ".npy"])
+def test_a_wrong_shape_is_refused_from_the_header_before_inflating(
+    tmp_path: Path, suffix: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 38 (4): a 1.2 MB .npz declaring (400000, 200, 16) cost 1.2 GB and 9 s, and a
+    sparse .npy was read in full, before the shape was compared with the grid's."""
+    import dego._npz
+    import dego.evaluation.predictions
+
+    path = tmp_path / f"huge{suffix}"
+    grid = np.zeros((40, *SHAPE[1:]), dtype=np.uint8)  # 10x the expected X
+    if suffix == ".npz":
+        np.savez_compressed(path, pred=grid)
+    else:
+        np.save(path, grid)
+
+    def inflated(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the array was read before its shape was checked")
+
+    monkeypatch.setattr(dego._npz, "_read_member", inflated)
+    monkeypatch.setattr(dego.evaluation.predictions.np, "load", inflated)
+    with pytest.raises(ValueError, match=rf"huge\{suffix}.*shape \(40, .*expected"):
+        load_prediction(path, expected_shape=SHAPE)
+    np.save(tmp_path / "float.npy", grid.astype(np.float32))
+    with pytest.raises(ValueError, match=r"float\.npy: expected integer labels"):
+        load_prediction(tmp_path / "float.npy", expected_shape=SHAPE)
+
+
 def test_ambiguous_and_unknown_archives_are_refused(tmp_path: Path) -> None:
     grid = np.zeros(SHAPE, dtype=np.uint8)
     np.savez(tmp_path / "two.npz", pred=grid, arr_0=grid)
@@ -423,3 +451,77 @@ def test_tqdm_bar_with_rate_and_eta() -> None:
         progress.update(4)
     text = stream.getvalue()
     assert "4/4" in text and "sample/s" in text
+
+
+# ----------------------------------------------------------------------------------------
+# issue 38 (2, 6): what the walks cannot read is an error, never a silent omission
+# ----------------------------------------------------------------------------------------
+
+
+def _deny(monkeypatch: pytest.MonkeyPatch, denied: Path) -> None:
+    """``os.scandir`` of ``denied`` and ``stat`` below it fail with EACCES, as for a folder
+    at mode 000 under a non-root user (the tests run as root, who reads everything)."""
+    import errno
+
+    real_scandir, real_stat = os.scandir, os.stat
+
+    def scandir(path: object = ".") -> object:
+        if Path(os.fspath(path)) == denied:
+            raise PermissionError(errno.EACCES, "Permission denied", os.fspath(path))
+        return real_scandir(path)
+
+    def stat(path: object, *args: object, **kwargs: object) -> os.stat_result:
+        if denied in Path(os.fspath(path)).parents:
+            raise PermissionError(errno.EACCES, "Permission denied", os.fspath(path))
+        return real_stat(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "scandir", scandir)
+    monkeypatch.setattr(os, "stat", stat)
+
+
+def test_an_unreadable_gt_scene_is_a_setup_error(
+    tree: dict, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 38 (2): ``gts/scene-a`` at mode 000 left its samples out of numerator and
+    denominator alike ("2 of 2 samples scored", exit 0)."""
+    scene = tree["gt"] / "gts" / SCENE_OF[TOKENS[0]]
+    _deny(monkeypatch, scene)
+    args = ["--gt", str(tree["gt"]), "--pred", str(tree["pred"]), "--no-rayiou", "--quiet"]
+    code, out, err = run_cli(args, capsys)
+    assert code == 2 and out == ""
+    assert (
+        err == f"error: --gt: {scene}: cannot be read (Permission denied); fix its "
+        "permissions or remove it from the tree\n"
+    )
+
+
+@pytest.mark.parametrize("kind", ["dangling", "directory"])
+def test_a_labels_archive_that_is_no_file_is_a_setup_error(
+    tree: dict, tmp_path: Path, kind: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    gt = tmp_path / "gt"
+    shutil.copytree(tree["gt"], gt)
+    labels = gt / "gts" / SCENE_OF[TOKENS[1]] / TOKENS[1] / "labels.npz"
+    labels.unlink()
+    if kind == "dangling":
+        labels.symlink_to(tmp_path / "nowhere.npz")
+    else:
+        labels.mkdir()
+    args = ["--gt", str(gt), "--pred", str(tree["pred"]), "--no-rayiou", "--quiet"]
+    code, out, err = run_cli(args, capsys)
+    what = "a dangling link" if kind == "dangling" else "not a regular file"
+    assert code == 2 and out == ""
+    assert err == f"error: --gt: {labels}: {what}; expected the sample's labels archive\n"
+
+
+def test_an_unreadable_pred_folder_is_one_error_line(
+    tree: dict, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 38 (6): a PermissionError traceback from ``is_file()`` (exit 1)."""
+    pred = Path(tree["pred"])
+    args = ["--gt", str(tree["gt"]), "--pred", str(pred), "--no-rayiou", "--quiet"]
+    _deny(monkeypatch, pred)
+    code, out, err = run_cli(args, capsys)
+    assert code == 2 and out == ""
+    assert err.startswith(f"error: --pred: {pred}/") and "cannot be read (Permission denied)" in err
+    assert err.count("\n") == 1

@@ -154,6 +154,21 @@ def test_gt_token_absent_from_the_tables(
     assert "Traceback" not in err and err.count("\n") == 1
 
 
+def test_a_deeply_nested_table_is_one_error_line(
+    nus: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 38 (5): ``"[" * 100000 + "]" * 100000`` as sample.json escaped as a
+    RecursionError traceback (exit 1)."""
+    tables = tmp_path / "nuscenes"
+    shutil.copytree(nus["tables"], tables)
+    (tables / VERSION / "sample.json").write_text("[" * 100_000 + "]" * 100_000)
+    args = ["--gt", str(nus["gt"]), "--pred", str(nus["pred"]), "--nuscenes", str(tables)]
+    code, out, err = run_cli([*args, "--version", VERSION], capsys)
+    assert code == 2 and out == ""
+    assert err.startswith("error: ") and "sample.json: not a readable JSON table" in err
+    assert "Traceback" not in err and err.count("\n") == 1
+
+
 # ----------------------------------------------------------------------------------------
 # corrupt ground truth: collected per sample, the others scored
 # ----------------------------------------------------------------------------------------

@@ -173,6 +173,8 @@ def _read_table(path: Path) -> list[Any]:
             rows = json.load(stream)
     except (ValueError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not a readable JSON table ({exc})") from None
+    except RecursionError:  # e.g. "[" * 100000: nesting deeper than the parser's stack
+        raise ValueError(f"{path}: not a readable JSON table (nested too deeply)") from None
     if not isinstance(rows, list):
         raise ValueError(f"{path}: expected a JSON list of objects, got {type(rows).__name__}")
     return rows

@@ -71,7 +71,23 @@ def _choose_key(path: Path, keys: list[str]) -> str:
     return known[0]
 
 
-def _read_npy(path: Path) -> np.ndarray:
+def _check_declared(
+    where: str,
+    shape: tuple[int, ...],
+    dtype: np.dtype,
+    expected_shape: tuple[int, int, int] | None,
+) -> None:
+    """A prediction's dtype and shape, from its header, before anything is inflated."""
+    if dtype.kind not in "iu":
+        raise ValueError(f"{where}: expected integer labels, got dtype {dtype}")
+    if expected_shape is not None and tuple(shape) != tuple(expected_shape):
+        raise ValueError(
+            f"{where}: shape {tuple(shape)}, expected {tuple(expected_shape)} "
+            "(the ground truth's grid)"
+        )
+
+
+def _read_npy(path: Path, expected_shape: tuple[int, int, int] | None) -> np.ndarray:
     with path.open("rb") as file:
         try:
             version = np.lib.format.read_magic(file)
@@ -83,6 +99,7 @@ def _read_npy(path: Path) -> np.ndarray:
             raise ValueError(f"{path}: not a readable .npy array ({exc})") from exc
     if dtype.hasobject:
         raise ValueError(f"{path}: holds an object array ({dtype}); refused (allow_pickle=False)")
+    _check_declared(str(path), shape, dtype, expected_shape)
     check_memory(str(path), int(np.prod(shape)) * dtype.itemsize, f"shape {shape}, {dtype}")
     try:
         return np.load(path, allow_pickle=False)
@@ -111,19 +128,17 @@ def load_prediction(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such prediction file")
+    # dtype and shape are checked on the headers, before anything is inflated
     if path.suffix == ".npy":
-        array, where = _read_npy(path), f"{path}"
+        array, where = _read_npy(path, expected_shape), f"{path}"
     else:
         key = _choose_key(path, _npz_keys(path))
-        array = read_npz(path, [key], holds="a prediction archive")[key]
+
+        def check_header(name: str, shape: tuple[int, ...], dtype: np.dtype) -> None:
+            _check_declared(f"array {name!r}", shape, dtype, expected_shape)
+
+        array = read_npz(path, [key], holds="a prediction archive", check_header=check_header)[key]
         where = f"{path}: array {key!r}"
-    if array.dtype.kind not in "iu":
-        raise ValueError(f"{where}: expected integer labels, got dtype {array.dtype}")
-    if expected_shape is not None and tuple(array.shape) != tuple(expected_shape):
-        raise ValueError(
-            f"{where}: shape {tuple(array.shape)}, expected {tuple(expected_shape)} "
-            "(the ground truth's grid)"
-        )
     if array.size:
         low, high = int(array.min()), int(array.max())
         if low < 0 or high >= num_classes:

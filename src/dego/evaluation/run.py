@@ -127,17 +127,52 @@ def _ground_truth(root: Path) -> tuple[Path, list[tuple[str, str]]]:
     if not root.is_dir():
         raise EvaluationSetupError(f"--gt: {root} is not an existing directory")
     labels_root = root / "gts" if (root / "gts").is_dir() else root
-    samples = sorted(
-        (path.parent.parent.name, path.parent.name)
-        for path in labels_root.glob(f"*/*/{LABELS_FILENAME}")
-        if path.is_file()
-    )
+    samples = sorted(_walk_ground_truth(labels_root))
     if not samples:
         raise EvaluationSetupError(
             f"--gt: no ground truth under {root}: expected gts/<scene>/<token>/"
             f"{LABELS_FILENAME} (the Occ3D release) or <scene>/<token>/{LABELS_FILENAME}"
         )
     return labels_root, samples
+
+
+def _folders(folder: Path) -> list[Path]:
+    """The sub-folders of ``folder`` (symlinks to folders included); a folder that cannot
+    be listed is a setup error naming it, never a silent omission (as ``glob`` makes it)."""
+    try:
+        with os.scandir(folder) as entries:
+            names = [entry.name for entry in entries]
+    except OSError as exc:
+        raise EvaluationSetupError(
+            f"--gt: {folder}: cannot be read ({exc.strerror or exc}); fix its permissions or "
+            "remove it from the tree"
+        ) from None
+    return [folder / name for name in names if (folder / name).is_dir()]
+
+
+def _walk_ground_truth(labels_root: Path) -> list[tuple[str, str]]:
+    """``(scene, token)`` of every ``<scene>/<token>/labels.npz``; a ``labels.npz`` that is
+    a dangling link or not a regular file, or a folder that cannot be read, is a setup
+    error (a token folder without ``labels.npz`` is not a sample)."""
+    samples = []
+    for scene in _folders(labels_root):
+        for token in _folders(scene):
+            labels = token / LABELS_FILENAME
+            try:
+                regular = labels.is_file()
+                present = regular or os.path.lexists(labels)
+            except OSError as exc:
+                raise EvaluationSetupError(
+                    f"--gt: {labels}: cannot be read ({exc.strerror or exc})"
+                ) from None
+            if present and not regular:
+                what = "a dangling link" if not labels.exists() else "not a regular file"
+                raise EvaluationSetupError(
+                    f"--gt: {labels}: {what}; expected the sample's labels archive"
+                )
+            if regular:
+                samples.append((scene.name, token.name))
+    return samples
 
 
 def prepare(
@@ -194,7 +229,12 @@ def prepare(
 
     samples, missing_tokens = [], []
     for scene, token in pairs:
-        path = find_prediction(pred_root, scene, token)
+        try:
+            path = find_prediction(pred_root, scene, token)
+        except OSError as exc:  # a folder on the way that cannot be read
+            raise EvaluationSetupError(
+                f"--pred: {exc.filename or pred_root}: cannot be read ({exc.strerror or exc})"
+            ) from None
         if path is None:
             missing_tokens.append(token)
             if missing == "skip":
