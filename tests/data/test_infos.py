@@ -410,3 +410,66 @@ def test_load_infos_bad_layouts(tmp_path: Path, frames: list[Any]) -> None:
         load_infos(_dump(tmp_path / "d.pkl", [_Reduce(os.system, ("true",))]))
     with pytest.raises(FileNotFoundError, match=r"absent\.pkl"):
         load_infos(tmp_path / "absent.pkl")
+
+
+# -- issue 38 (3): what a few bytes can make the loader allocate ------------------------
+
+BOMBS = {
+    # LONG_BINPUT 2**31: the C unpickler grew its memo array to 2**31 entries (16 GB)
+    "memo": b"\x80\x02Nr\x00\x00\x00\x80.",
+    "bytes": b"cbuiltins\nbytes\n(\x8a\x05\x00\x00\x00\x00\x10tR.",  # bytes(2**36)
+    "bytearray": b"cbuiltins\nbytearray\n(\x8a\x05\x00\x00\x00\x00\x01tR.",  # 2**32
+    "list": b"cbuiltins\nlist\n(cbuiltins\nrange\n(J\x00\xca\x9a;tRtR.",  # range(10**9)
+    "set": b"cbuiltins\nset\n(cbuiltins\nrange\n(J\x00-1\x01tRtR.",  # range(2 * 10**7)
+    "newobj": b"\x80\x02cbuiltins\nbytes\n\x8a\x05\x00\x00\x00\x00\x10\x85\x81.",
+    "binbytes8": b"\x80\x04\x8e\x00\x00\x00\x00\x00\x00\x00\x01.",  # 2**56 bytes declared
+}
+
+BOMB_CHECK = r"""
+import json, resource, sys, tracemalloc
+from pathlib import Path
+resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))  # a regression fails, not the machine
+from dego.data import UnsafePickleError, load_pickle
+results = {}
+for path in sys.argv[1:]:
+    tracemalloc.start()
+    try:
+        value = load_pickle(path)
+        outcome = f"loaded {value!r}"
+    except UnsafePickleError as exc:
+        outcome = f"refused: {exc}"
+    except ValueError as exc:
+        outcome = f"unreadable: {exc}"
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    results[Path(path).stem] = [outcome, peak, Path(path).stat().st_size]
+print(json.dumps(results))
+"""
+
+
+@pytest.mark.slow
+def test_a_hostile_file_cannot_make_the_loader_allocate_much(tmp_path: Path) -> None:
+    """Issue 38 (3): 10-40-byte files made load_pickle try to allocate gigabytes. Each is
+    now refused (or, the memo index, harmless) with memory growth under 10x the file size
+    plus 1 MiB; the check runs in a subprocess under a 4 GiB address-space limit."""
+    import json
+    import subprocess
+    import sys
+
+    paths = []
+    for name, payload in BOMBS.items():
+        (tmp_path / f"{name}.pkl").write_bytes(payload)
+        paths.append(str(tmp_path / f"{name}.pkl"))
+    done = subprocess.run(
+        [sys.executable, "-c", BOMB_CHECK, *paths], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    results = json.loads(done.stdout.strip().splitlines()[-1])
+    assert results["memo"][0] == "loaded None"
+    for name in ("bytes", "bytearray", "newobj"):
+        assert results[name][0].startswith("refused: ") and "size argument" in results[name][0]
+    for name in ("list", "set"):
+        assert results[name][0].startswith("refused: ") and "items: at most" in results[name][0]
+    assert "declares 72,057,594,037,927,936 bytes" in results["binbytes8"][0]
+    for name, (_, peak, size) in results.items():
+        assert peak < 10 * size + (1 << 20), (name, peak)

@@ -15,6 +15,16 @@ numpy's pickled state is not trusted either: ``numpy.ndarray`` is never callable
 the file (``ndarray(shape, object, buffer)`` would read raw memory as pointers), and
 every dtype is rebuilt through numpy's validating constructor before an array or
 scalar uses it (a pickled dtype state may carry field offsets past its item size).
+
+Nor are the sizes a file declares: what a few bytes can make the loader allocate is
+bounded by the file's size. The unpickler is Python's pure-Python one, whose memo is a
+dict (the C unpickler grows an array to the largest memo index: ``LONG_BINPUT 2**31``
+in 10 bytes asked for 16 GB); a read past the end of the file (a ``BINBYTES8`` or frame
+declaring more than the file holds) is refused before it is attempted; the allowed
+constructors refuse a size argument (``bytes(2**36)``, ``bytearray(2**32)``) and an
+iterable longer than :func:`item_limit` (``list(range(10**9))``), whether the file calls
+them (``REDUCE``) or their ``__new__`` (``NEWOBJ``); numpy arrays declared
+larger than the file holds fail numpy's own size check.
 """
 
 from __future__ import annotations
@@ -24,8 +34,9 @@ import collections
 import os
 import pickle
 import struct
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, ClassVar, cast
 
 import numpy as np
 
@@ -157,6 +168,61 @@ def _latin1_encode(text: Any, encoding: Any = "utf-8") -> bytes:
     return text.encode("latin-1")
 
 
+def item_limit(file_size: int) -> int:
+    """The most items one allowed constructor may build from a file of ``file_size`` bytes:
+    each item needs at least one byte of opcode, so 16 per byte is generous; plus 65,536
+    for the fixed allowance."""
+    return 16 * file_size + 65_536
+
+
+_SIZED = frozenset({list, tuple, set, frozenset, dict, bytes, bytearray, str})
+
+
+def _check_sizes(kind: Any, args: tuple[Any, ...], path: Path, limit: int) -> None:
+    """Before ``kind(*args)`` (``REDUCE``) or ``kind.__new__(kind, *args)`` (``NEWOBJ``) of
+    an allowed container: no size argument, no iterable longer than ``limit``."""
+    if kind not in _SIZED:
+        return
+    name = kind.__name__
+    if args and kind in (bytes, bytearray) and isinstance(args[0], int):
+        raise UnsafePickleError(
+            f"{path}: refused {name}({args[0]}): a size argument would allocate memory the "
+            "file does not hold"
+        )
+    for value in args:
+        sized = isinstance(value, range | str | bytes | bytearray | list | tuple | set | dict)
+        if sized and len(value) > limit:
+            raise UnsafePickleError(
+                f"{path}: refused {name}() of {len(value):,} items: at most {limit:,} for a "
+                "file of this size"
+            )
+
+
+class _BoundedFile:
+    """The file as the unpickler reads it: a read of more than the rest of the file is
+    refused before any buffer for it is allocated."""
+
+    def __init__(self, stream: Any, path: Path, size: int) -> None:
+        self._stream, self._path, self._size = stream, path, size
+
+    def read(self, n: int = -1) -> bytes:
+        remaining = self._size - self._stream.tell()
+        if n > remaining:
+            raise ValueError(f"it declares {n:,} bytes where {max(remaining, 0):,} remain")
+        return cast(bytes, self._stream.read(n))
+
+    def readinto(self, buffer: Any) -> int:
+        if len(buffer) > self._size - self._stream.tell():
+            raise ValueError("it declares more bytes than the file holds")
+        return cast(int, self._stream.readinto(buffer))
+
+    def readline(self) -> bytes:
+        return cast(bytes, self._stream.readline(self._size - self._stream.tell()))
+
+    def peek(self, n: int = 0) -> bytes:
+        return cast(bytes, self._stream.peek(n))
+
+
 _NUMPY = {
     "_reconstruct": ("multiarray", _reconstruct),
     "scalar": ("multiarray", _scalar),
@@ -196,10 +262,11 @@ _ALLOWED: dict[tuple[str, str], Any] = {
 }
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    def __init__(self, file: Any, path: Path) -> None:
-        super().__init__(file)
+class _RestrictedUnpickler(pickle._Unpickler):  # the pure-Python one: its memo is a dict
+    def __init__(self, file: Any, path: Path, size: int) -> None:
+        super().__init__(_BoundedFile(file, path, size))
         self._path = path
+        self._limit = item_limit(size)
 
     def find_class(self, module: str, name: str) -> Any:
         key = (module, name)
@@ -214,6 +281,26 @@ class _RestrictedUnpickler(pickle.Unpickler):
         raise UnsafePickleError(
             f"{self._path}: refused the global {key[0]}.{key[1]}{written}: {_ALLOWED_MESSAGE}"
         )
+
+    # REDUCE, NEWOBJ and NEWOBJ_EX call what find_class allowed: check the sizes first
+    def _load_reduce(self) -> None:
+        _check_sizes(self.stack[-2], self.stack[-1], self._path, self._limit)  # type: ignore[attr-defined]
+        super().load_reduce()  # type: ignore[misc]
+
+    def _load_newobj(self) -> None:
+        _check_sizes(self.stack[-2], self.stack[-1], self._path, self._limit)  # type: ignore[attr-defined]
+        super().load_newobj()  # type: ignore[misc]
+
+    def _load_newobj_ex(self) -> None:
+        _check_sizes(self.stack[-3], self.stack[-2], self._path, self._limit)  # type: ignore[attr-defined]
+        super().load_newobj_ex()  # type: ignore[misc]
+
+    dispatch: ClassVar[dict[int, Callable[[Any], None]]] = {
+        **pickle._Unpickler.dispatch,
+        pickle.REDUCE[0]: _load_reduce,
+        pickle.NEWOBJ[0]: _load_newobj,
+        pickle.NEWOBJ_EX[0]: _load_newobj_ex,
+    }
 
     def persistent_load(self, pid: Any) -> Any:
         raise UnsafePickleError(
@@ -266,7 +353,8 @@ def load_pickle(path: PathLike) -> object:
     try:
         # A FIFO (or socket, device) is refused here rather than blocking in open().
         with open_regular_file(file, "a pickle file") as stream:
-            loaded = _RestrictedUnpickler(stream, file).load()
+            size = os.fstat(stream.fileno()).st_size
+            loaded = _RestrictedUnpickler(stream, file, size).load()
         return _plain(loaded, {})
     except UnsafePickleError as exc:
         if str(file) in str(exc):
