@@ -71,3 +71,38 @@ def test_torchrun_two_ranks_equal_one_process(tree: dict, tmp_path: Path) -> Non
         assert data["counts"][name]["confusion"] == expected[name].confusion.tolist()
         assert data["counts"][name]["geometric"] == expected[name].geometric.tolist()
         assert data[name]["miou"] == 100 * expected[name].compute().miou
+
+
+RANK_DIRECTORY = r"""
+import os, sys
+os.chdir(os.environ["DEGO_TEST_ROOT"] + "/rank" + os.environ["LOCAL_RANK"])
+from dego.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_torchrun_ranks_seeing_different_trees_refuse(tree: dict, tmp_path: Path) -> None:
+    """Issue 38 (1): rank 1's --gt lacked a sample (a partial copy on a second node); both
+    ranks exited 0 and rank 0's report differed from one process's. The same flags, run
+    from a folder per rank: every rank now refuses, naming what differs, before scoring."""
+    for rank in (0, 1):
+        shutil.copytree(tree["gt"], tmp_path / f"rank{rank}" / "gt")
+        shutil.copytree(tree["pred"], tmp_path / f"rank{rank}" / "pred")
+    shutil.rmtree(tmp_path / "rank1" / "gt" / "gts" / "scene-b" / "tok-b1")
+    script = tmp_path / "per_rank.py"
+    script.write_text(RANK_DIRECTORY)
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    command += ["--nproc_per_node", "2", str(script), "eval", "--gt", "gt", "--pred", "pred"]
+    command += ["--no-rayiou", "--quiet"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "DEGO_TEST_ROOT": str(tmp_path)}
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=240)
+    assert result.returncode != 0
+    # every rank raises; torchrun may stop a rank once the other has exited, so one or two
+    # lines, and its own launcher's traceback, but no frame of dego's
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
+    assert 1 <= len(lines) <= 2, result.stderr[-3000:]
+    for line in lines:
+        assert "the ranks see different evaluations" in line
+        assert "samples: 6 on rank 0, 5 on rank 1 (rank 1 lacks 'tok-b1')" in line
+    frames = [line for line in result.stderr.splitlines() if line.strip().startswith("File ")]
+    assert not [f for f in frames if "/dego/" in f and "torch" not in f], frames

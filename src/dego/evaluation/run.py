@@ -50,6 +50,7 @@ from dego.evaluation.origins import (
 from dego.evaluation.predictions import find_prediction, load_prediction, prediction_candidates
 from dego.evaluation.progress import Progress
 from dego.evaluation.report import EvaluationReport
+from dego.metrics.counts import all_gather_json, config_digest
 from dego.metrics.occupancy import OccupancyMetrics
 from dego.metrics.rayiou import RayIoU
 from dego.metrics.report import OccupancyReport
@@ -515,6 +516,67 @@ def _run_workers(plan: Plan, workers: int, progress: Progress) -> dict[str, Any]
     return result
 
 
+def _plan_summary(plan: Plan) -> dict[str, Any]:
+    """What every rank's plan must agree on before the samples are sharded: the samples
+    (with whether each has a prediction), the missing policy, protocols, classes and the
+    origin source (not the roots' paths, which may differ between nodes)."""
+    source = plan.source
+    return {
+        "samples": [[s.scene, s.token, s.prediction is not None] for s in plan.samples],
+        "missing": [plan.missing_policy, list(plan.missing_tokens)],
+        "protocols": list(plan.protocols),
+        "rayiou": plan.rayiou,
+        "classes": None if plan.classes is None else list(plan.classes),
+        "origins": None if source is None else [source.kind, source.version],
+    }
+
+
+def _plan_differences(mine: dict[str, Any], theirs: dict[str, Any], rank: int) -> str:
+    """What rank ``rank``'s plan summary changes from rank 0's, in a few words."""
+    parts = []
+    for key in mine:
+        if mine[key] == theirs[key]:
+            continue
+        if key == "samples":
+            here = {tuple(s[:2]) for s in mine[key]}
+            there = {tuple(s[:2]) for s in theirs[key]}
+            lacking = sorted(t for _, t in here - there)
+            extra = sorted(t for _, t in there - here)
+            text = f"samples: {len(mine[key])} on rank 0, {len(theirs[key])} on rank {rank}"
+            if lacking:
+                text += f" (rank {rank} lacks {list_tokens(lacking)})"
+            if extra:
+                text += f" (only rank {rank} has {list_tokens(extra)})"
+            if not lacking and not extra:
+                text += " (the same tokens; the predictions found differ)"
+            parts.append(text)
+        else:
+            parts.append(f"{key}: {mine[key]!r} on rank 0, {theirs[key]!r} on rank {rank}")
+    return "; ".join(parts)
+
+
+def _check_plans_agree(plan: Plan) -> None:
+    """Under torch.distributed, raise :class:`EvaluationSetupError` on every rank when the
+    ranks' plans differ (a partial copy of the tree on one node), before anything is
+    sharded or pooled: each rank shards its own plan, and mismatched shards would pool
+    wrong counts. A digest is compared first; the summaries only when it differs."""
+    summary = _plan_summary(plan)
+    cpu = torch.device("cpu")
+    digests = all_gather_json(list(config_digest(summary)), None, cpu)
+    if all(d == digests[0] for d in digests):
+        return
+    summaries = all_gather_json(summary, None, cpu)
+    differences = [
+        f"rank {rank}: {_plan_differences(summaries[0], theirs, rank)}"
+        for rank, theirs in enumerate(summaries)
+        if theirs != summaries[0]
+    ]
+    raise EvaluationSetupError(
+        "the ranks see different evaluations (" + "; ".join(differences) + "): every rank "
+        "must see the same ground truth, predictions and options"
+    )
+
+
 def _run_here(plan: Plan, origins_fn: OriginsFn | None, progress: Progress) -> dict[str, Any]:
     """This process's shard (all samples outside torch.distributed), reduced over ranks."""
     rank, world = 0, 1
@@ -604,6 +666,8 @@ def evaluate(
         dist.init_process_group("gloo", init_method="env://")
         created_group = True
     try:
+        if distributed:
+            _check_plans_agree(plan)
         rank = dist.get_rank() if distributed else 0
         world = dist.get_world_size() if distributed else workers
         shard_total = len(plan.samples[rank::world]) if distributed else len(plan.samples)

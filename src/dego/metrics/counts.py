@@ -40,7 +40,7 @@ def _differences(mine: Mapping[str, Any], theirs: Mapping[str, Any]) -> str:
     return ", ".join(f"{k} {mine.get(k)!r} vs {theirs.get(k)!r}" for k in keys)
 
 
-def _all_gather_json(value: Any, process_group: Any, device: torch.device) -> list[Any]:
+def all_gather_json(value: Any, process_group: Any, device: torch.device) -> list[Any]:
     """Every rank's ``value`` (plain data), exchanged as JSON bytes: no pickle."""
     text = json.dumps(value, default=str)
     data = torch.tensor(list(text.encode()), dtype=torch.int64, device=device)
@@ -164,7 +164,7 @@ class CountingMetric(nn.Module):
         dist.all_gather(digests, digest, group=process_group)
         if all(torch.equal(d, digest) for d in digests):
             return
-        identities = _all_gather_json(identity, process_group, device)
+        identities = all_gather_json(identity, process_group, device)
         rank = dist.get_rank(process_group)
 
         def described(theirs: dict[str, Any]) -> str:
