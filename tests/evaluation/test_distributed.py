@@ -106,3 +106,84 @@ def test_torchrun_ranks_seeing_different_trees_refuse(tree: dict, tmp_path: Path
         assert "samples: 6 on rank 0, 5 on rank 1 (rank 1 lacks 'tok-b1')" in line
     frames = [line for line in result.stderr.splitlines() if line.strip().startswith("File ")]
     assert not [f for f in frames if "/dego/" in f and "torch" not in f], frames
+
+
+# issue 38 (7, 8): a worker killed, and Ctrl-C, during --workers
+
+
+def _plan(tree: dict) -> object:
+    from dego.evaluation.run import prepare
+
+    plan, _ = prepare(tree["gt"], tree["pred"], rayiou=False)
+    return plan
+
+
+def test_a_killed_worker_is_one_error_line(
+    tree: dict, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 38 (7): kill -9 of a worker (the OOM killer's way) ended in a 31-line
+    ProcessExitedException traceback."""
+    from dego.evaluation import EvaluationWorkerError
+    from dego.evaluation import run as evaluation_run
+    from dego.evaluation.progress import Progress
+    from tests.helpers.eval_workers import killed_worker
+
+    with pytest.raises(EvaluationWorkerError, match=r"worker 1 \(pid \d+\) was killed by SIGKILL"):
+        evaluation_run._run_workers(
+            _plan(tree), 2, Progress(6, enabled=False), target=killed_worker
+        )
+    real = evaluation_run._run_workers
+
+    def run_killed(plan: object, workers: int, progress: object) -> object:
+        return real(plan, workers, progress, target=killed_worker)
+
+    monkeypatch.setattr(evaluation_run, "_run_workers", run_killed)
+    args = ["eval", "--gt", str(tree["gt"]), "--pred", str(tree["pred"]), "--no-rayiou"]
+    code = cli_main([*args, "--workers", "2", "--quiet"])
+    out, err = capsys.readouterr()
+    assert code == 1 and out == ""
+    assert err.startswith("error: evaluation worker 1") and err.count("\n") == 1
+    assert "fewer --workers" in err
+
+
+def test_ctrl_c_stops_the_workers_before_their_store_goes(
+    tree: dict, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 38 (8): Ctrl-C during --workers printed 87 lines of worker tracebacks, and
+    SIGINT to the parent alone 25 lines of FileNotFoundError (the store removed under
+    running workers). The workers ignore SIGINT; the parent stops them, then cleans up."""
+    import glob
+    import signal
+    import tempfile
+    import threading
+    import time
+
+    from dego.evaluation import run as evaluation_run
+    from dego.evaluation.progress import Progress
+    from tests.helpers.eval_workers import busy_worker
+
+    before = set(glob.glob(os.path.join(tempfile.gettempdir(), "dego-eval-*")))
+    pids: list[int] = []
+
+    def interrupt() -> None:  # once both workers run: SIGINT to them and to us, as a tty
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            marks = set(glob.glob(os.path.join(tempfile.gettempdir(), "dego-eval-*", "store.*")))
+            if len(marks) == 2:
+                pids.extend(int(Path(m).read_text()) for m in marks)
+                break
+            time.sleep(0.05)
+        for pid in pids:
+            os.kill(pid, signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=interrupt, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        evaluation_run._run_workers(_plan(tree), 2, Progress(6, enabled=False), target=busy_worker)
+    assert len(pids) == 2
+    for pid in pids:  # stopped and reaped
+        status = Path(f"/proc/{pid}/status")
+        assert not status.exists() or "zombie" in status.read_text()
+    assert set(glob.glob(os.path.join(tempfile.gettempdir(), "dego-eval-*"))) == before
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "FileNotFoundError" not in err

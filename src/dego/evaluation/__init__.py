@@ -7,7 +7,7 @@ torchrun ranks through torch.distributed), progress, and reports.
     Path("report.json").write_text(report.to_json())  # percent, "units": "percent"
 """
 
-from dego.evaluation.errors import EvaluationSetupError, SampleFailure
+from dego.evaluation.errors import EvaluationSetupError, EvaluationWorkerError, SampleFailure
 from dego.evaluation.origins import DirectoryOrigins, OriginSource
 from dego.evaluation.predictions import PREDICTION_KEYS, find_prediction, load_prediction
 from dego.evaluation.progress import Progress
@@ -19,6 +19,7 @@ __all__ = [
     "DirectoryOrigins",
     "EvaluationReport",
     "EvaluationSetupError",
+    "EvaluationWorkerError",
     "OriginSource",
     "Progress",
     "SampleFailure",

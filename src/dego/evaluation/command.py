@@ -21,7 +21,7 @@ import torch
 
 from dego._atomic import check_output_file, remove_empty_dirs, write_files
 from dego.classes import FREE_LABEL
-from dego.evaluation.errors import EvaluationSetupError
+from dego.evaluation.errors import EvaluationSetupError, EvaluationWorkerError
 from dego.evaluation.run import MISSING_POLICIES, PROTOCOL_CHOICES, evaluate
 
 MAX_WORKERS = 64
@@ -249,6 +249,9 @@ def _run(args: argparse.Namespace, created: list[Path]) -> int:
         if is_rank0:
             print(f"error: {error}", file=sys.stderr)
         return 2
+    except EvaluationWorkerError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     if not is_rank0:
         return 0 if report.complete else 1
     print(report.tables())

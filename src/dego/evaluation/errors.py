@@ -13,6 +13,12 @@ class EvaluationSetupError(ValueError):
     """
 
 
+class EvaluationWorkerError(RuntimeError):
+    """A ``--workers`` process died (killed by a signal, or exited) before the totals were
+    sent: no report is made. ``dego eval`` prints it as one ``error: ...`` line and exits
+    with status 1."""
+
+
 @dataclasses.dataclass(frozen=True)
 class SampleFailure:
     """A sample that could not be scored: its token, the file at fault and why."""
@@ -31,4 +37,4 @@ def list_tokens(tokens: list[str] | tuple[str, ...], limit: int = 10) -> str:
     return shown + (f" ... and {len(tokens) - limit} more" if len(tokens) > limit else "")
 
 
-__all__ = ["EvaluationSetupError", "SampleFailure", "list_tokens"]
+__all__ = ["EvaluationSetupError", "EvaluationWorkerError", "SampleFailure", "list_tokens"]

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
+import signal
 import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -37,7 +38,12 @@ from dego._typing import typechecked
 from dego._version import __version__
 from dego.classes import FREE_LABEL
 from dego.data.occ3d import LABELS_FILENAME, load_occ3d_labels
-from dego.evaluation.errors import EvaluationSetupError, SampleFailure, list_tokens
+from dego.evaluation.errors import (
+    EvaluationSetupError,
+    EvaluationWorkerError,
+    SampleFailure,
+    list_tokens,
+)
 from dego.evaluation.origins import (
     NO_ORIGINS_MESSAGE,
     DirectoryOrigins,
@@ -471,7 +477,10 @@ def launched_by_torchrun() -> bool:
 def _worker(
     rank: int, plan: Plan, world_size: int, store: str, events: Any, report_progress: bool
 ) -> None:
-    """One spawned worker: gloo group, its shard, the reduce; rank 0 sends the totals."""
+    """One spawned worker: gloo group, its shard, the reduce; rank 0 sends the totals.
+    Ctrl-C (SIGINT to the whole process group) is the parent's to handle: it stops the
+    workers, which print nothing."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(max(1, _cpus() // world_size))
     dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=world_size)
     try:
@@ -484,17 +493,48 @@ def _worker(
         dist.destroy_process_group()
 
 
-def _run_workers(plan: Plan, workers: int, progress: Progress) -> dict[str, Any]:
+def _stop(processes: Sequence[Any]) -> None:
+    """Terminate the workers still running and wait for them (before their store goes)."""
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    for process in processes:
+        process.join(5)
+        if process.is_alive():
+            process.kill()
+            process.join()
+
+
+def _exit_message(error: Any) -> str:
+    """One line for a worker that died: which, how, and what to try."""
+    how = (
+        f"was killed by {error.signal_name}"
+        if error.signal_name
+        else f"exited with status {error.exit_code}"
+    )
+    return (
+        f"evaluation worker {error.error_index} (pid {error.error_pid}) {how}; no report was "
+        "made. If the machine ran out of memory (the kernel's OOM killer sends SIGKILL), run "
+        "again with fewer --workers"
+    )
+
+
+def _run_workers(
+    plan: Plan, workers: int, progress: Progress, *, target: Callable[..., None] | None = None
+) -> dict[str, Any]:
+    """The plan scored by ``workers`` spawned processes (``target``: :func:`_worker`)."""
     scratch = tempfile.mkdtemp(prefix="dego-eval-")
+    processes: Sequence[Any] = ()
     try:
         events = torch_mp.get_context("spawn").SimpleQueue()
         context = torch_mp.start_processes(
-            _worker,
+            target or _worker,
             args=(plan, workers, str(Path(scratch) / "store"), events, progress.enabled),
             nprocs=workers,
             join=False,
             start_method="spawn",
         )
+        processes = context.processes
         result: dict[str, Any] | None = None
 
         def drain() -> None:
@@ -506,10 +546,14 @@ def _run_workers(plan: Plan, workers: int, progress: Progress) -> dict[str, Any]
                 else:
                     result = payload
 
-        while not context.join(timeout=0.1):
-            drain()
+        try:
+            while not context.join(timeout=0.1):
+                drain()
+        except torch_mp.ProcessExitedException as error:
+            raise EvaluationWorkerError(_exit_message(error)) from None
         drain()
     finally:
+        _stop(processes)  # Ctrl-C, or a worker that died: the others go before their store
         shutil.rmtree(scratch, ignore_errors=True)
     if result is None:
         raise RuntimeError("evaluation workers ended without sending their totals")
