@@ -325,11 +325,47 @@ def test_a_corrupt_checkpoint_is_refused_on_load() -> None:
 
 @needs_safe_globals
 def test_only_dego_classes_are_allowlisted() -> None:
+    """Each class's pickled name resolves to its stand-in (torch >= 2.5), which becomes the
+    class only through its checked state; nothing else of dego's is allowlisted."""
     assert _safe_globals.register_safe_globals()
     allowed = torch.serialization.get_safe_globals()
-    ours = [entry for entry in allowed if getattr(entry, "__module__", "").startswith("dego")]
-    assert set(ours) == set(_safe_globals.safe_types())
-    assert all(isinstance(entry, type) and dataclasses.is_dataclass(entry) for entry in ours)
+    pairs = [e for e in allowed if isinstance(e, tuple) and e[1].startswith("dego.")]
+    ours = [e for e in allowed if getattr(e, "__module__", "").startswith("dego")]
+    assert not ours  # no class itself, no function
+    targets = {stand_in.target for stand_in, _ in pairs}
+    assert targets == set(_safe_globals.safe_types())
+    assert all(dataclasses.is_dataclass(target) for target in targets)
+    for stand_in, name in pairs:
+        assert issubclass(stand_in, _safe_globals._Unbuilt)
+        assert name.rsplit(".", 1)[1] == stand_in.target.__qualname__
+
+
+def _with_pickle(payload: bytes) -> io.BytesIO:
+    """A torch.save zip whose data.pkl is ``payload``."""
+    import zipfile
+
+    saved = io.BytesIO()
+    torch.save(None, saved)
+    out = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(saved.getvalue())) as source, zipfile.ZipFile(out, "w") as z:
+        for info in source.infolist():
+            data = source.read(info.filename)
+            z.writestr(info.filename, payload if info.filename.endswith("data.pkl") else data)
+    out.seek(0)
+    return out
+
+
+@needs_safe_globals
+@pytest.mark.parametrize("cls", _safe_globals.safe_types(), ids=lambda c: c.__name__)
+def test_a_pickle_cannot_make_an_object_without_its_checked_state(cls: type) -> None:
+    """Issue 38 (9): ``GLOBAL dego.gaussians GaussianSet; EMPTY_TUPLE; NEWOBJ; STOP`` loaded
+    a GaussianSet with no fields (an AttributeError later)."""
+    name = f"{cls.__module__}\n{cls.__qualname__}\n".encode()
+    loaded = torch.load(_with_pickle(b"\x80\x02c" + name + b")\x81."), weights_only=True)
+    assert not isinstance(loaded, cls)
+    assert repr(loaded) == f"<{cls.__name__} that its pickle never built>"
+    with pytest.raises(AttributeError, match=rf"^{cls.__name__}: the pickle made this object"):
+        loaded.to_dict()
 
 
 def test_checkpoints_naming_classes_where_they_lived_before_a_split_still_load() -> None:

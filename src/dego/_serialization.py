@@ -9,7 +9,8 @@ field's annotation; :func:`get_state` / :func:`set_state` are the pickle state b
 constructor would refuse. :func:`register_safe_globals` (called once by ``import dego``)
 allowlists the classes of :func:`safe_types` for ``torch.load(weights_only=True)``: dego's
 dataclasses only, no function, so all a checkpoint can reach is their constructors and
-their checked state.
+their checked state (from torch 2.5 through stand-ins that become the class only once the
+checked state has arrived, so that ``NEWOBJ`` alone builds no dego object).
 """
 
 from __future__ import annotations
