@@ -395,6 +395,14 @@ def _ddp_worker(rank: int, world_size: int, init_file: str, out_dir: str) -> Non
             error = ""
         except ValueError as err:
             error = str(err)
+        # issue 38: another metric on each rank (states of other names and shapes, on which
+        # gloo's gather aborted): refused on every rank before any state is gathered
+        other = OccupancyMetric("weak") if rank == 0 else RayIoUMetric(grid=SMALL_GRID)
+        try:
+            other.compute()
+            kind_error = ""
+        except ValueError as err:
+            kind_error = str(err)
         torch.save(
             {
                 "value": value,
@@ -405,6 +413,7 @@ def _ddp_worker(rank: int, world_size: int, init_file: str, out_dir: str) -> Non
                 "ray_own_per_class": ray_own.sync().compute().per_class,
                 "local_unchanged": torch.equal(local, adapter.confusion),
                 "error": error,
+                "kind_error": kind_error,
             },
             Path(out_dir) / f"rank{rank}.pt",
         )
@@ -434,10 +443,13 @@ def test_two_process_sync_equals_dego_sync_and_single_process(tmp_path: Path) ->
         assert torch.equal(result["value"], single.compute())
         assert torch.equal(result["ray_value"], ray_single.compute())
         assert result["local_unchanged"]  # torchmetrics restores the local states
-        # both ranks refuse; rank 1 has made a "weak" metric itself and names it
-        assert "counts of another configuration were pooled" in result["error"]
+        # both ranks refuse before pooling, each naming the other rank's configuration
+        assert "sync: the ranks of the process group hold OccupancyMetric" in result["error"]
+        assert result["kind_error"].startswith("sync: the ranks of the process group hold")
     rank1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
-    assert "protocol 'weak' vs 'occ3d'" in rank1["error"]
+    assert "protocol 'occ3d' vs 'weak'" in rank1["error"]
+    rank0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    assert "rank 1 has a RayIoUMetric" in rank0["kind_error"]
 
 
 # ---------------------------------------------------------------------------------------

@@ -33,6 +33,7 @@ from torch import Tensor
 
 try:
     from torchmetrics import Metric
+    from torchmetrics.utilities.distributed import gather_all_tensors
 except ModuleNotFoundError as err:  # pragma: no cover - exercised without the extra
     raise ModuleNotFoundError(
         "dego.compat.torchmetrics needs torchmetrics: "
@@ -44,7 +45,7 @@ from dego._typing import typechecked
 from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.grid import VoxelGrid
 from dego.metrics.counts import DIGEST_BYTES as _DIGEST_BYTES
-from dego.metrics.counts import config_digest
+from dego.metrics.counts import check_same_identity, config_digest
 from dego.metrics.occupancy import OMITTED, OccupancySpec, Omitted
 from dego.metrics.rayiou import DEFAULT_THRESHOLDS, RayIoUReport, RayIoUSpec
 from dego.metrics.report import OccupancyReport
@@ -151,6 +152,23 @@ class _DegoCountsMetric(Metric):
             self.to(device)
 
     # -- configuration checks -----------------------------------------------------------
+    def _sync_dist(
+        self, dist_sync_fn: Callable = gather_all_tensors, process_group: Any = None
+    ) -> None:
+        """torchmetrics' sync, after the check that every rank holds the same metric: two
+        ranks with different metrics (an OccupancyMetric here, a RayIoUMetric there) have
+        states of other names and shapes, on which gloo's gather aborts; now every rank
+        raises ``ValueError`` naming both first
+        (:func:`dego.metrics.counts.check_same_identity`)."""
+        group = process_group or self.process_group
+        counts = {n: list(getattr(self, n).shape) for n in self._spec.count_shapes()}
+        identity = {"metric": type(self).__name__, "config": self._dego_config, "counts": counts}
+        device = self.config_fingerprint.device
+        if torch.distributed.get_backend(group) == "nccl" and device.type != "cuda":
+            device = torch.device("cuda", torch.cuda.current_device())
+        check_same_identity(identity, group, device)
+        super()._sync_dist(dist_sync_fn, process_group)
+
     def _check_config(self) -> None:
         seen = _fingerprints(self.config_fingerprint)
         if seen == {self._own_fingerprint}:

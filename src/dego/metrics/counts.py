@@ -58,6 +58,42 @@ def all_gather_json(value: Any, process_group: Any, device: torch.device) -> lis
     ]
 
 
+def check_same_identity(identity: dict[str, Any], process_group: Any, device: torch.device) -> None:
+    """Before counts are pooled across ranks: ``identity`` (``{"metric", "config",
+    "counts"}``: the class, its configuration, the shapes of its counts) must be every
+    rank's. One all-gather of a fixed-length digest; only if the digests differ, a second
+    exchange (of every rank's identity, to name them) and ``ValueError`` on every rank
+    (each takes the same branch: each sees every digest)."""
+    identity = json.loads(json.dumps(identity, default=str))  # as others see it
+    digest = torch.tensor(config_digest(identity), dtype=torch.int64, device=device)
+    digests = [torch.empty_like(digest) for _ in range(dist.get_world_size(process_group))]
+    dist.all_gather(digests, digest, group=process_group)
+    if all(torch.equal(d, digest) for d in digests):
+        return
+    identities = all_gather_json(identity, process_group, device)
+    rank = dist.get_rank(process_group)
+
+    def described(theirs: dict[str, Any]) -> str:
+        kind = "" if theirs["metric"] == identity["metric"] else f"a {theirs['metric']} "
+        mine = {"metric": identity["metric"], **identity["config"]}
+        differences = _differences(mine, {"metric": theirs["metric"], **theirs["config"]})
+        if not differences:  # only the shapes of the counts differ
+            differences = _differences(identity["counts"], theirs["counts"])
+        return f"{kind}{theirs['config']} ({differences})"
+
+    others = [
+        f"rank {r} has {described(ident)}"
+        for r, ident in enumerate(identities)
+        if r != rank and ident != identity
+    ]
+    raise ValueError(
+        f"sync: the ranks of the process group hold {identity['metric']} with different "
+        f"configurations, whose counts must not be pooled: this rank "
+        f"({rank}) has {identity['config']}; {'; '.join(others)}. Configure the metric "
+        "the same way on every rank"
+    )
+
+
 def class_names(num_classes: int) -> tuple[str, ...]:
     """Report names of ``num_classes`` labels: Occ3D-nuScenes' for 18, else ``class_<i>``."""
     if num_classes == NUM_CLASSES:
@@ -155,37 +191,7 @@ class CountingMetric(nn.Module):
         }
 
     def _check_same_config_on_every_rank(self, process_group: Any, device: torch.device) -> None:
-        """One all-gather of a fixed-length digest; only if the digests differ, a second
-        exchange (of every rank's configuration, to name them) and ``ValueError`` on every
-        rank (each takes the same branch: each sees every digest)."""
-        identity = json.loads(json.dumps(self._identity(), default=str))  # as others see it
-        digest = torch.tensor(config_digest(identity), dtype=torch.int64, device=device)
-        digests = [torch.empty_like(digest) for _ in range(dist.get_world_size(process_group))]
-        dist.all_gather(digests, digest, group=process_group)
-        if all(torch.equal(d, digest) for d in digests):
-            return
-        identities = all_gather_json(identity, process_group, device)
-        rank = dist.get_rank(process_group)
-
-        def described(theirs: dict[str, Any]) -> str:
-            kind = "" if theirs["metric"] == identity["metric"] else f"a {theirs['metric']} "
-            mine = {"metric": identity["metric"], **identity["config"]}
-            differences = _differences(mine, {"metric": theirs["metric"], **theirs["config"]})
-            if not differences:  # only the shapes of the counts differ
-                differences = _differences(identity["counts"], theirs["counts"])
-            return f"{kind}{theirs['config']} ({differences})"
-
-        others = [
-            f"rank {r} has {described(ident)}"
-            for r, ident in enumerate(identities)
-            if r != rank and ident != identity
-        ]
-        raise ValueError(
-            f"sync: the ranks of the process group hold {type(self).__name__} with different "
-            f"configurations, whose counts must not be pooled: this rank "
-            f"({rank}) has {self._config()}; {'; '.join(others)}. Configure the metric "
-            "the same way on every rank"
-        )
+        check_same_identity(self._identity(), process_group, device)
 
     # -- (de)serialisation ------------------------------------------------------------
     def persistent(self, mode: bool = True) -> CountingMetric:
