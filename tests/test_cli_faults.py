@@ -343,3 +343,11 @@ def test_the_documented_flag_bounds_are_the_code_s() -> None:
     assert f"more than {cli.MAX_LIST_VALUES} values, or `--frames` above {MAX_DEMO_FRAMES}" in study
     evaluation = (ROOT / "docs" / "evaluation.md").read_text()
     assert f"N local processes (1-{MAX_WORKERS})" in evaluation
+    # the bounds of dego eval's inputs (issue 38)
+    from dego.data.safe_pickle import ITEM_ALLOWANCE, ITEMS_PER_BYTE
+    from dego.metrics.counts import DIGEST_BYTES
+
+    assert f"at most {ITEMS_PER_BYTE} items per byte of the file plus {ITEM_ALLOWANCE:,}" in (
+        validation
+    )
+    assert f"compare a {DIGEST_BYTES}-byte digest of their plans" in validation

@@ -208,3 +208,19 @@ def test_bad_shapes_and_dtypes_name_the_argument() -> None:
         spherical_harmonics(1, torch.zeros(2, 3, dtype=torch.int64), torch.randn(2, 4, 3))
     with pytest.raises(ValueError, match="directions, coefficients"):
         spherical_harmonics(1, torch.randn(2, 3), torch.randn(2, 4, 3, dtype=torch.float64))
+
+
+@pytest.mark.slow
+def test_a_zero_direction_under_compile_names_directions() -> None:
+    """Issue 38 (10): the compiled path checks as the other ops do (an in-graph assertion)."""
+    import torch._dynamo
+
+    torch._dynamo.reset()
+    d = random_directions(4, seed=2)
+    d[1] = 0.0
+    compiled = torch.compile(spherical_harmonics, backend="aot_eager")
+    try:
+        with pytest.raises(RuntimeError, match="directions: some directions are zero"):
+            compiled(2, d, torch.randn(4, 9, 3, dtype=torch.float64))
+    finally:
+        torch._dynamo.reset()

@@ -168,11 +168,16 @@ def _latin1_encode(text: Any, encoding: Any = "utf-8") -> bytes:
     return text.encode("latin-1")
 
 
+ITEMS_PER_BYTE = 16
+"""Items one allowed constructor may build per byte of the file (each item needs at least
+one byte of opcode, so this is generous)."""
+ITEM_ALLOWANCE = 65_536
+"""Items allowed on top of :data:`ITEMS_PER_BYTE` per byte, whatever the file's size."""
+
+
 def item_limit(file_size: int) -> int:
-    """The most items one allowed constructor may build from a file of ``file_size`` bytes:
-    each item needs at least one byte of opcode, so 16 per byte is generous; plus 65,536
-    for the fixed allowance."""
-    return 16 * file_size + 65_536
+    """The most items one allowed constructor may build from a file of ``file_size`` bytes."""
+    return ITEMS_PER_BYTE * file_size + ITEM_ALLOWANCE
 
 
 _SIZED = frozenset({list, tuple, set, frozenset, dict, bytes, bytearray, str})
