@@ -222,51 +222,22 @@ class _Composite(torch.autograd.Function):
     ) -> tuple[Tensor, Tensor]:
         from dego.splatting import triton_kernels
 
-        per_image = lists.tiles_x * lists.tiles_y
         tiles, transmittance, stop = triton_kernels.forward(
-            means2d,
-            conics,
-            opacities,
-            colors,
-            lists.gaussians,
-            lists.starts,
-            lists.counts,
-            lists.tiles_x,
-            per_image,
-            tile_size,
-            _rules(rules),
+            means2d, conics, opacities, colors, lists, tile_size, _rules(rules)
         )
-        ctx.save_for_backward(
-            means2d, conics, opacities, colors, lists.gaussians, lists.starts, transmittance, stop
-        )
-        ctx.tiles_x, ctx.per_image, ctx.rules, ctx.sink = (
-            lists.tiles_x,
-            per_image,
-            _rules(rules),
-            absgrad_sink,
-        )
+        ctx.save_for_backward(means2d, conics, opacities, colors, transmittance, stop)
+        # the lists hold no gradient: kept as they are, not as saved tensors
+        ctx.lists, ctx.rules, ctx.sink = lists, _rules(rules), absgrad_sink
         return tiles, transmittance
 
     @staticmethod
     def backward(ctx: Any, grad_tiles: Tensor, grad_t: Tensor) -> tuple[Tensor | None, ...]:
         from dego.splatting import triton_kernels
 
-        means2d, conics, opacities, colors, pairs, starts, transmittance, stop = ctx.saved_tensors
+        means2d, conics, opacities, colors, transmittance, stop = ctx.saved_tensors
         grads = triton_kernels.backward(
-            means2d,
-            conics,
-            opacities,
-            colors,
-            pairs,
-            starts,
-            transmittance,
-            stop,
-            grad_tiles,
-            grad_t,
-            ctx.tiles_x,
-            ctx.per_image,
-            ctx.rules,
-            ctx.sink is not None,
+            *(means2d, conics, opacities, colors, ctx.lists, transmittance, stop),
+            *(grad_tiles, grad_t, ctx.rules, ctx.sink is not None),
         )
         if ctx.sink is not None:
             ctx.sink(grads[4])

@@ -22,6 +22,8 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
+from dego.splatting.tiles import TileLists
+
 BLOCK_G = 16
 """Gaussians per batch (the inner dimension of the ``tl.dot`` products; at least 16)."""
 BLOCK_D = 32
@@ -253,20 +255,17 @@ def forward(
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    pairs: Tensor,
-    starts: Tensor,
-    counts: Tensor,
-    tiles_x: int,
-    tiles_per_image: int,
+    lists: TileLists,
     tile_size: int,
     rules: tuple[float, float, float],
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite every tile: ``(tiles (T, S, S, D), transmittance (T, S, S), stop (T, S, S))``.
 
     ``means2d (M, 2)``, ``conics (M, 3)``, ``opacities (M,)``, ``colors (M, D)`` float32
-    contiguous; ``pairs`` the tiles' sorted Gaussian indices, ``starts`` / ``counts``
-    ``(T,)`` each tile's slice; ``rules`` ``(max_alpha, alpha_min, transmittance_min)``.
+    contiguous; ``lists`` the tiles' sorted Gaussians; ``rules`` ``(max_alpha, alpha_min,
+    transmittance_min)``.
     """
+    pairs, counts = lists.gaussians, lists.counts
     num_tiles, dim = counts.shape[0], colors.shape[1]
     size = tile_size
     out = colors.new_zeros(num_tiles, size, size, dim)
@@ -281,13 +280,13 @@ def forward(
         opacities,
         colors,
         pairs,
-        starts,
+        lists.starts,
         counts,
         out,
         transmittance,
         stop,
-        tiles_x,
-        tiles_per_image,
+        lists.tiles_x,
+        lists.tiles_x * lists.tiles_y,
         dim,
         *rules,
         S=size,
@@ -305,14 +304,11 @@ def backward(
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    pairs: Tensor,
-    starts: Tensor,
+    lists: TileLists,
     transmittance: Tensor,
     stop: Tensor,
     grad_out: Tensor,
     grad_transmittance: Tensor,
-    tiles_x: int,
-    tiles_per_image: int,
     rules: tuple[float, float, float],
     absgrad: bool,
 ) -> tuple[Tensor, ...]:
@@ -321,22 +317,22 @@ def backward(
     num_tiles, size = stop.shape[0], stop.shape[1]
     grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, colors)]
     absolute = torch.zeros_like(means2d) if absgrad else grads[0]
-    if num_tiles and pairs.numel():
+    if num_tiles and lists.gaussians.numel():
         _backward_kernel[(num_tiles,)](
             means2d,
             conics,
             opacities,
             colors,
-            pairs,
-            starts,
+            lists.gaussians,
+            lists.starts,
             transmittance,
             stop,
             grad_out.contiguous(),
             grad_transmittance.contiguous(),
             *grads,
             absolute,
-            tiles_x,
-            tiles_per_image,
+            lists.tiles_x,
+            lists.tiles_x * lists.tiles_y,
             colors.shape[1],
             rules[0],
             rules[1],

@@ -65,19 +65,8 @@ def _rasterize(
     lists = tile_lists(
         bin_means2d, bin_extents, bin_depths, bin_conics, bin_max_sigma, height, width, tile_size
     )
-    return triton_kernels.forward(
-        means2d,
-        conics,
-        opacities,
-        colors,
-        lists.gaussians,
-        lists.starts,
-        lists.counts,
-        lists.tiles_x,
-        lists.tiles_x * lists.tiles_y,
-        tile_size,
-        (max_alpha, alpha_min, transmittance_min),
-    )
+    rules = (max_alpha, alpha_min, transmittance_min)
+    return triton_kernels.forward(means2d, conics, opacities, colors, lists, tile_size, rules)
 
 
 @_rasterize.register_fake
@@ -120,20 +109,8 @@ def _rasterize_backward(
         bin_means2d, bin_extents, bin_depths, bin_conics, bin_max_sigma, height, width, tile_size
     )
     grads = triton_kernels.backward(
-        means2d,
-        conics,
-        opacities,
-        colors,
-        lists.gaussians,
-        lists.starts,
-        transmittance,
-        stop,
-        grad_tiles,
-        grad_transmittance,
-        lists.tiles_x,
-        lists.tiles_x * lists.tiles_y,
-        (max_alpha, alpha_min, 0.0),
-        False,
+        *(means2d, conics, opacities, colors, lists, transmittance, stop),
+        *(grad_tiles, grad_transmittance, (max_alpha, alpha_min, 0.0), False),
     )
     return grads[0], grads[1], grads[2], grads[3]
 
