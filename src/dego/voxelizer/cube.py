@@ -10,7 +10,6 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from dego._geometry import scaled_rotation_gram
-from dego._policy import check_memory
 from dego.grid import VoxelGrid
 from dego.voxelizer.boxes import grid_float64
 from dego.voxelizer.inputs import check_size
@@ -112,23 +111,20 @@ def _sum_cube_pairs(
     probabilistic = kernel.probabilistic
     side = 2 * config.nbh + 1
     cube_size = side**3
-    # before the cube's offset tables (int64: r, three per cell, one flat per cell) exist
-    check_memory(
-        "voxelize",
-        8.0 * side + 32.0 * cube_size,
-        f"nbh = {config.nbh}: the offsets of a (2 nbh + 1)^3 = {side}^3-cell cube",
-    )
-    r = torch.arange(-config.nbh, config.nbh + 1, device=device)
     per_chunk = max(1, config.chunk_size // cube_size)
     differentiable = requiring_grad(means, precision6, opacities, features, log_normaliser)
     grad_needed = bool(differentiable)
+    # before anything of the cube exists, its int64 offset tables (r, three per cell and
+    # one flat per cell) included: nbh = 2**40 asked for 16 TB of them first
     check_size(
         flat,
         grid,
         min(per_chunk, b * n) * cube_size,
         49 + (5 + 2 * flat.channels) * dtype.itemsize,
-        b * n * cube_size * 24 if grad_needed else 0,
+        (b * n * cube_size * 24 if grad_needed else 0) + 8 * side + 32 * cube_size,
+        f", nbh = {config.nbh}: a (2 nbh + 1)^3 = {side}^3-cell cube",
     )
+    r = torch.arange(-config.nbh, config.nbh + 1, device=device)
     lower = torch.tensor(grid.lower, dtype=dtype, device=device)
     size = torch.tensor(grid.voxel_size, dtype=dtype, device=device)
     shape = torch.tensor(grid.shape, device=device)

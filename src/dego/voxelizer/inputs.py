@@ -88,11 +88,17 @@ def flatten_inputs(gaussians: GaussianSet, features: Tensor | None) -> FlatGauss
 
 
 def check_size(
-    flat: FlatGaussians, grid: VoxelGrid, chunk: int, per_chunk_element: int, retained: int
+    flat: FlatGaussians,
+    grid: VoxelGrid,
+    chunk: int,
+    per_chunk_element: int,
+    retained: int,
+    detail: str = "",
 ) -> None:
     """:func:`check_memory` on the output grids, one chunk's buffers (``chunk`` elements of
     ``per_chunk_element`` bytes) and (under autograd) the ``retained`` bytes of per-pair
-    indices kept for backward, before any of them is allocated."""
+    indices kept for backward (and any other table), before any of them is allocated;
+    ``detail`` is added to the sizes the message names."""
     b, channels, dtype, out_dtype = flat.batch_size, flat.channels, flat.dtype, flat.out_dtype
     x, y, z = grid.shape
     voxels = b * x * y * z
@@ -103,5 +109,5 @@ def check_size(
         "voxelize",
         nbytes,
         f"B = {b} grids of {x} x {y} x {z} voxels x ({channels} + 2) channels in {dtype}, "
-        f"chunks of {chunk} (Gaussian, voxel) pairs",
+        f"chunks of {chunk} (Gaussian, voxel) pairs{detail}",
     )
