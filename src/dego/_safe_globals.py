@@ -6,6 +6,7 @@ listing the classes creates no import circle: only ``dego/__init__`` imports thi
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import torch
@@ -86,14 +87,10 @@ class _Unbuilt:
         return f"<{self.target.__name__} that its pickle never built>"
 
 
+@functools.cache
 def _stand_in(cls: type) -> type:
     """The :class:`_Unbuilt` stand-in of ``cls`` (one per class)."""
-    if cls not in _STAND_INS:
-        _STAND_INS[cls] = type(f"Unbuilt{cls.__name__}", (_Unbuilt,), {"target": cls})
-    return _STAND_INS[cls]
-
-
-_STAND_INS: dict[type, type] = {}
+    return type(f"Unbuilt{cls.__name__}", (_Unbuilt,), {"target": cls})
 
 
 def register_safe_globals() -> bool:

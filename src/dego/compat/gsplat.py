@@ -27,6 +27,7 @@ from dego.gaussians import GaussianSet
 from dego.spherical_harmonics import MAX_DEGREE, spherical_harmonics
 from dego.splatting import gsplat_backend, pipeline
 from dego.splatting.projection import Projection
+from dego.splatting.tiles import tile_grid_shape
 from dego.splatting.types import Backend, SplatConfig
 
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
@@ -351,7 +352,7 @@ def rasterization(
     render_colors = out.image.contiguous().reshape(*batch, cameras, height, width, -1)
     render_alphas = out.alpha.reshape(*batch, cameras, height, width, 1)
     meta = layout.meta(out.projection, radius_rule)
-    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    tiles_y, tiles_x = tile_grid_shape((height, width), tile_size)
     meta |= {"width": width, "height": height, "tile_size": tile_size}
     meta |= {"tile_width": tiles_x, "tile_height": tiles_y}
     meta |= {"n_cameras": cameras, "n_batches": flat}

@@ -224,9 +224,6 @@ class _BoundedFile:
     def readline(self) -> bytes:
         return cast(bytes, self._stream.readline(self._size - self._stream.tell()))
 
-    def peek(self, n: int = 0) -> bytes:
-        return cast(bytes, self._stream.peek(n))
-
 
 _NUMPY = {
     "_reconstruct": ("multiarray", _reconstruct),

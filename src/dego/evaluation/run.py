@@ -56,7 +56,7 @@ from dego.evaluation.origins import (
 from dego.evaluation.predictions import find_prediction, load_prediction, prediction_candidates
 from dego.evaluation.progress import Progress
 from dego.evaluation.report import EvaluationReport
-from dego.metrics.counts import all_gather_json, config_digest
+from dego.metrics.counts import gathered_if_different
 from dego.metrics.occupancy import OccupancyMetrics
 from dego.metrics.rayiou import RayIoU
 from dego.metrics.report import OccupancyReport
@@ -604,12 +604,9 @@ def _check_plans_agree(plan: Plan) -> None:
     ranks' plans differ (a partial copy of the tree on one node), before anything is
     sharded or pooled: each rank shards its own plan, and mismatched shards would pool
     wrong counts. A digest is compared first; the summaries only when it differs."""
-    summary = _plan_summary(plan)
-    cpu = torch.device("cpu")
-    digests = all_gather_json(list(config_digest(summary)), None, cpu)
-    if all(d == digests[0] for d in digests):
+    summaries = gathered_if_different(_plan_summary(plan), None, torch.device("cpu"))
+    if summaries is None:
         return
-    summaries = all_gather_json(summary, None, cpu)
     differences = [
         f"rank {rank}: {_plan_differences(summaries[0], theirs, rank)}"
         for rank, theirs in enumerate(summaries)

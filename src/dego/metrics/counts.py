@@ -58,19 +58,27 @@ def all_gather_json(value: Any, process_group: Any, device: torch.device) -> lis
     ]
 
 
-def check_same_identity(identity: dict[str, Any], process_group: Any, device: torch.device) -> None:
-    """Before counts are pooled across ranks: ``identity`` (``{"metric", "config",
-    "counts"}``: the class, its configuration, the shapes of its counts) must be every
-    rank's. One all-gather of a fixed-length digest; only if the digests differ, a second
-    exchange (of every rank's identity, to name them) and ``ValueError`` on every rank
-    (each takes the same branch: each sees every digest)."""
-    identity = json.loads(json.dumps(identity, default=str))  # as others see it
-    digest = torch.tensor(config_digest(identity), dtype=torch.int64, device=device)
+def gathered_if_different(value: Any, process_group: Any, device: torch.device) -> list[Any] | None:
+    """Every rank's ``value`` (plain data, as JSON gives it back) when some rank's differs,
+    else ``None``: one all-gather of a fixed-length digest, and the values themselves only
+    when the digests differ. Every rank takes the same branch (each sees every digest)."""
+    digest = torch.tensor(config_digest(value), dtype=torch.int64, device=device)
     digests = [torch.empty_like(digest) for _ in range(dist.get_world_size(process_group))]
     dist.all_gather(digests, digest, group=process_group)
     if all(torch.equal(d, digest) for d in digests):
+        return None
+    return all_gather_json(value, process_group, device)
+
+
+def check_same_identity(identity: dict[str, Any], process_group: Any, device: torch.device) -> None:
+    """Before counts are pooled across ranks: ``identity`` (``{"metric", "config",
+    "counts"}``: the class, its configuration, the shapes of its counts) must be every
+    rank's, else ``ValueError`` on every rank naming the other ranks' identities
+    (:func:`gathered_if_different`)."""
+    identity = json.loads(json.dumps(identity, default=str))  # as others see it
+    identities = gathered_if_different(identity, process_group, device)
+    if identities is None:
         return
-    identities = all_gather_json(identity, process_group, device)
     rank = dist.get_rank(process_group)
 
     def described(theirs: dict[str, Any]) -> str:

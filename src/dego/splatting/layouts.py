@@ -9,11 +9,12 @@ allocate a zero-filled gradient per slice in backward, and a transposition anoth
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import torch
 from torch import Tensor
+
+from dego.splatting.tiles import tile_grid_shape
 
 _TINY_ALPHA = 1e-10
 
@@ -32,9 +33,7 @@ class TileGrid:
 
     @classmethod
     def of(cls, b: int, v: int, tile_size: int, size: tuple[int, int]) -> TileGrid:
-        height, width = size
-        tiles_y, tiles_x = math.ceil(height / tile_size), math.ceil(width / tile_size)
-        return cls(b, v, tiles_y, tiles_x, tile_size, height, width)
+        return cls(b, v, *tile_grid_shape(size, tile_size), tile_size, *size)
 
     @property
     def cropped(self) -> bool:

@@ -30,6 +30,13 @@ class TileLists:
         return self.counts.shape[0]
 
 
+def tile_grid_shape(image_size: tuple[int, int], tile_size: int) -> tuple[int, int]:
+    """``(tiles_y, tiles_x)``: the tiles of ``tile_size`` pixels covering an ``(H, W)`` image
+    (the last row and column may overhang it)."""
+    height, width = image_size
+    return math.ceil(height / tile_size), math.ceil(width / tile_size)
+
+
 def contributing_extents(
     variances2d: Tensor, radii: Tensor, opacities: Tensor, alpha_min: float
 ) -> tuple[Tensor, Tensor]:
@@ -107,8 +114,7 @@ def build_tile_lists(
     image) in the high 32 bits and the float32 depth's order-preserving bits in the low
     32: the same lists, ties in depth broken by index in both.
     """
-    height, width = image_size
-    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    tiles_y, tiles_x = tile_grid_shape(image_size, tile_size)
     num_images, n = depths.shape
     x0, x1, y0, y1 = (
         t.reshape(-1) for t in tile_ranges(means2d, extents, tile_size, tiles_x, tiles_y)

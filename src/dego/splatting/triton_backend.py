@@ -29,7 +29,6 @@ from torch import Tensor
 
 from dego._typing import _is_compiling
 from dego.gaussians import GaussianSet
-from dego.splatting.composite import CompositeRules
 from dego.splatting.tiles import TileLists
 from dego.splatting.types import SplatConfig
 
@@ -140,7 +139,7 @@ def _run_probe(device: torch.device) -> None:
         tiles_x=1,
         tiles_y=1,
     )
-    rules = CompositeRules(0.999, 1 / 255, 1e-4)
+    rules = (0.999, 1 / 255, 1e-4)
     tiles, transmittance = _Composite.apply(
         means2d, conics, opacities, colors, lists, 16, rules, None
     )
@@ -172,7 +171,8 @@ def bin_and_composite(
     )
     binning = (means2d, extents, depths, bin_conics, max_sigma)
     shape = (*size, config.tile_size)
-    rules = CompositeRules(config.max_alpha, config.alpha_min, config.transmittance_min)
+    # (max_alpha, alpha_min, transmittance_min) as floats: the operator's schema says float
+    rules = (float(config.max_alpha), float(config.alpha_min), float(config.transmittance_min))
     tensors = (
         compositing_means2d.contiguous(),
         conics.reshape(-1, 3).contiguous(),
@@ -182,7 +182,7 @@ def bin_and_composite(
     if _is_compiling() and absgrad_sink is None:
         # one operator with static output shapes: dynamo does not break the graph on it
         tiles, transmittance, _ = torch.ops.dego.triton_rasterize(
-            *binning, *tensors, *shape, *_rules(rules)
+            *binning, *tensors, *shape, *rules
         )
         return tiles, transmittance
     return _eager(binning, tensors, shape, rules, absgrad_sink)
@@ -193,15 +193,11 @@ def _eager(
     binning: tuple[Tensor, Tensor, Tensor, Tensor, Tensor],
     tensors: tuple[Tensor, ...],
     shape: tuple[int, int, int],
-    rules: CompositeRules,
+    rules: tuple[float, float, float],
     absgrad_sink: Callable[[Tensor], None] | None,
 ) -> tuple[Tensor, Tensor]:
     lists = tile_lists(*binning, *shape)
     return _Composite.apply(*tensors, lists, shape[2], rules, absgrad_sink)
-
-
-def _rules(rules: CompositeRules) -> tuple[float, float, float]:
-    return float(rules.max_alpha), float(rules.alpha_min), float(rules.transmittance_min)
 
 
 class _Composite(torch.autograd.Function):
@@ -217,17 +213,17 @@ class _Composite(torch.autograd.Function):
         colors: Tensor,
         lists: TileLists,
         tile_size: int,
-        rules: CompositeRules,
+        rules: tuple[float, float, float],
         absgrad_sink: Callable[[Tensor], None] | None,
     ) -> tuple[Tensor, Tensor]:
         from dego.splatting import triton_kernels
 
         tiles, transmittance, stop = triton_kernels.forward(
-            means2d, conics, opacities, colors, lists, tile_size, _rules(rules)
+            means2d, conics, opacities, colors, lists, tile_size, rules
         )
         ctx.save_for_backward(means2d, conics, opacities, colors, transmittance, stop)
         # the lists hold no gradient: kept as they are, not as saved tensors
-        ctx.lists, ctx.rules, ctx.sink = lists, _rules(rules), absgrad_sink
+        ctx.lists, ctx.rules, ctx.sink = lists, rules, absgrad_sink
         return tiles, transmittance
 
     @staticmethod

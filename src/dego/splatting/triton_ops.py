@@ -10,13 +10,12 @@ kernels of :mod:`dego.splatting.triton_kernels`.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from dego.splatting.tiles import TileLists, build_tile_lists
+from dego.splatting.tiles import TileLists, build_tile_lists, tile_grid_shape
 
 
 def tile_lists(
@@ -74,7 +73,8 @@ def _(*args: Any) -> tuple[Tensor, Tensor, Tensor]:
     # the operator's arguments, in order: 5 binning tensors (bin_depths is (I, N)), the 4
     # compositing tensors (colors is (M, D)), height, width, tile_size, then the rules
     bin_depths, colors, (height, width, size) = args[2], args[8], args[9:12]
-    tiles = bin_depths.shape[0] * math.ceil(height / size) * math.ceil(width / size)
+    tiles_y, tiles_x = tile_grid_shape((height, width), size)
+    tiles = bin_depths.shape[0] * tiles_y * tiles_x
     return (
         colors.new_empty(tiles, size, size, colors.shape[1]),
         colors.new_empty(tiles, size, size),
