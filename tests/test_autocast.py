@@ -4,14 +4,12 @@ and bad input still gets the eager errors."""
 
 from __future__ import annotations
 
-import importlib.util
-from typing import Any
-
 import pytest
 import torch
 from jaxtyping import TypeCheckError
 
 from dego import splat, voxelize
+from tests.helpers import triton
 from tests.helpers.compile_step import (
     GRID,
     HEIGHT,
@@ -25,17 +23,9 @@ from tests.helpers.compile_step import (
     targets,
     training_step,
 )
+from tests.helpers.op_contract import CUDA
 
 HALF = [torch.bfloat16, torch.float16]
-
-
-def _cuda_and(backend: str) -> Any:
-    marks = [pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")]
-    if backend == "triton":
-        marks.append(
-            pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="needs triton")
-        )
-    return marks
 
 
 @pytest.mark.parametrize(
@@ -43,9 +33,9 @@ def _cuda_and(backend: str) -> Any:
     [
         pytest.param(torch.bfloat16, "cpu", "torch", id="bfloat16"),
         pytest.param(torch.float16, "cpu", "torch", id="float16"),
-        pytest.param(torch.bfloat16, "cuda", "torch", marks=_cuda_and("torch"), id="cuda-bf16"),
+        pytest.param(torch.bfloat16, "cuda", "torch", marks=CUDA, id="cuda-bf16"),
         pytest.param(
-            torch.bfloat16, "cuda", "triton", marks=_cuda_and("triton"), id="cuda-bf16-triton"
+            torch.bfloat16, "cuda", "triton", marks=triton.on("cuda"), id="cuda-bf16-triton"
         ),
     ],
 )

@@ -4,8 +4,6 @@ runs while dynamo traces agrees with jaxtyping's."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import pytest
 import torch
 import torch._dynamo
@@ -18,6 +16,7 @@ import dego
 from dego import VoxelGrid, splat, voxelize
 from dego._typing import _specs, _traced_check, typechecked
 from dego.splatting import composite
+from tests.helpers import triton
 from tests.helpers.compile_step import (
     HEIGHT,
     OPS,
@@ -48,23 +47,11 @@ def _relative_error(a: Tensor, b: Tensor) -> float:
     return float((a - b).abs().max() / a.abs().max().clamp_min(1e-30)) if a.numel() else 0.0
 
 
-def _triton_on(device: str) -> Any:
-    """Skip marks of the Triton backend on ``device`` (the interpreter on CPU)."""
-    import importlib.util
-
-    missing = importlib.util.find_spec("triton") is None
-    if not missing and device == "cpu":
-        from dego.splatting import triton_backend
-
-        missing = not triton_backend.interpreting()
-    return pytest.mark.skipif(missing, reason="needs triton (and on CPU its interpreter)")
-
-
 STEP_PARAMS = [
     pytest.param("cpu", "torch", id="cpu-torch"),
-    pytest.param("cpu", "triton", marks=_triton_on("cpu"), id="cpu-triton-interpreted"),
+    pytest.param("cpu", "triton", marks=triton.on("cpu"), id="cpu-triton-interpreted"),
     pytest.param("cuda", "torch", marks=CUDA, id="cuda-torch"),
-    pytest.param("cuda", "triton", marks=[CUDA, _triton_on("cuda")], id="cuda-triton"),
+    pytest.param("cuda", "triton", marks=triton.on("cuda"), id="cuda-triton"),
 ]
 
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib.util
 import math
 
 import pytest
@@ -18,6 +17,7 @@ import dego.gaussians
 import dego.metrics
 import dego.splatting
 import dego.teacher
+from tests.helpers import triton
 from tests.helpers.op_contract import (
     FLOATS,
     HALVES,
@@ -571,14 +571,11 @@ CASES.append(
 
 def _triton_skips() -> dict[str, str]:
     """Where ``backend="triton"`` cannot run: without triton nowhere, on the CPU only through
-    Triton's interpreter (tests/conftest.py turns it on where no GPU is present)."""
-    if importlib.util.find_spec("triton") is None:
-        return {"*": "needs triton (the `triton` extra)"}
-    from dego.splatting import triton_backend
-
-    if not triton_backend.interpreting():
-        return {"cpu": "Triton's interpreter is off: the Triton backend runs on CUDA only"}
-    return {}
+    Triton's interpreter (:mod:`tests.helpers.triton`)."""
+    if not triton.INSTALLED:
+        return {"*": triton.NOT_INSTALLED}
+    reason = triton.why_not("cpu")
+    return {} if reason is None else {"cpu": reason}
 
 
 # The Triton backend keeps the torch path's contract: the same outputs, dtypes, devices,

@@ -6,7 +6,6 @@ Scenes are small on purpose: the interpreter runs each program in Python."""
 
 from __future__ import annotations
 
-import importlib.util
 import warnings
 from typing import Any
 
@@ -18,6 +17,7 @@ from torch import Tensor
 import dego
 from dego.compat import gsplat as compat_gsplat
 from dego.splatting import SplatConfig, triton_backend
+from tests.helpers import triton
 from tests.helpers.splatting import (
     Scene,
     gradients,
@@ -30,21 +30,9 @@ from tests.helpers.splatting import (
     with_grad,
 )
 
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("triton") is None, reason="needs triton (the `triton` extra)"
-)
+pytestmark = pytest.mark.skipif(not triton.INSTALLED, reason=triton.NOT_INSTALLED)
 
-
-def _devices() -> list[Any]:
-    interpreted = pytest.mark.skipif(
-        importlib.util.find_spec("triton") is None or not triton_backend.interpreting(),
-        reason="Triton's interpreter is off (TRITON_INTERPRET=1 not set before the import)",
-    )
-    cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")
-    return [pytest.param("cpu", marks=interpreted), pytest.param("cuda", marks=cuda)]
-
-
-DEVICES = _devices() if importlib.util.find_spec("triton") else ["cpu"]
+DEVICES = [pytest.param(device, marks=triton.on(device)) for device in ("cpu", "cuda")]
 
 
 def _relative(a: Tensor, b: Tensor) -> float:
