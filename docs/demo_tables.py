@@ -16,8 +16,16 @@ from pathlib import Path
 from dego.demo import row_name
 from dego.study import METRICS, STUDY_VARIANTS, Interval, mean_interval
 
-GAINS = ("rigid", "decoupled", "free-offsets", "true-motion", "single-frame")
-PAIRED = ("articulated t!=0", "vehicles t!=0", "HCM t=0", "mIoU t=0")
+GAINS = ("rigid", "decoupled", "free-offsets", "free-velocities", "true-motion", "single-frame")
+PAIRED = (
+    "articulated t=±1",
+    "articulated t=±2+",
+    "vehicles t=±1",
+    "vehicles t=±2+",
+    "HCM t=0",
+    "mIoU t=0",
+)
+PER_SEED = ("articulated t=±1", "vehicles t=±1", "HCM t=0")
 
 
 def tables(payload: dict) -> str:
@@ -47,16 +55,11 @@ def tables(payload: dict) -> str:
             )
             cells.append(f"{diff}{' *' if diff.excludes_zero() else ''}")
         lines.append(f"| {row_name(v)} | " + " | ".join(cells) + " |")
-    lines += ["", "Per seed, articulated t!=0 / vehicles t!=0 / HCM t=0:", ""]
+    lines += ["", f"Per seed, {' / '.join(PER_SEED)}:", ""]
     lines += ["| seed | " + " | ".join(row_name(v) for v in variants) + " |"]
     lines += ["|---:|" + "---|" * len(variants)]
     for s in seeds:
-        cells = [
-            " / ".join(
-                f"{values(v, m)[s]:.1f}" for m in ("articulated t!=0", "vehicles t!=0", "HCM t=0")
-            )
-            for v in variants
-        ]
+        cells = [" / ".join(f"{values(v, m)[s]:.1f}" for m in PER_SEED) for v in variants]
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

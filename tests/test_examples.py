@@ -24,6 +24,10 @@ ARGUMENTS: dict[str, list[str]] = {
     ],
     "porting.py": ["--gaussians", "1500"],
     "fit_scene.py": ["--iterations", "3", "--gaussians", "400", "--frames", "2", "--out", TMP],
+    "train_feedforward.py": [
+        *("--steps", "3", "--train-scenes", "2", "--heldout-scenes", "1"),
+        *("--image-size", "16", "48", "--cache", TMP),
+    ],
 }
 # Scripts run by a test of their own (needing an extra), not by test_example_runs.
 TESTED_ELSEWHERE: dict[str, str] = {"train_lightning.py": "tests/test_example_lightning.py"}
@@ -69,6 +73,9 @@ def test_example_runs(name: str, tmp_path: Path) -> None:
         assert {"occ3d", "weak", "rayiou"} <= report.keys()
         assert "protocol: occ3d" in result.stdout and "protocol: weak" in result.stdout
         assert "RayIoU" in result.stdout
+    if name == "train_feedforward.py":
+        assert "step    2" in result.stdout and "mIoU" in result.stdout
+        assert list(Path(tmp_path).glob("scenes-*/scene-*.npz"))  # cached where told
     if name == "train_ddp.py":
         out = result.stdout
         assert "2 rank(s), backend gloo" in out

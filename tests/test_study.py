@@ -63,7 +63,7 @@ def test_intervals_from_fewer_than_three_seeds_are_flagged_not_printed() -> None
 
 
 def made_up_runs(seeds: Iterable[int], mask_step: float = 0.0) -> list[StudyRun]:
-    """``static`` and ``decoupled`` runs at budget 10: every score 1, articulated t!=0
+    """``static`` and ``decoupled`` runs at budget 10: every score 1, articulated t=±1
     5 + seed and 9 + seed, every mask statistic 0.5 + mask_step * seed."""
     from dego.study import MASK_METRICS
 
@@ -72,7 +72,7 @@ def made_up_runs(seeds: Iterable[int], mask_step: float = 0.0) -> list[StudyRun]
             seed,
             10,
             variant,
-            dict.fromkeys(METRICS, 1.0) | {"articulated t!=0": value + seed},
+            dict.fromkeys(METRICS, 1.0) | {"articulated t=±1": value + seed},
             dict.fromkeys(MASK_METRICS, 0.5 + mask_step * seed),
             3.0,
             1.0,
@@ -93,7 +93,7 @@ def test_report_flags_too_few_seeds(seeds: tuple[int, ...]) -> None:
     assert ("[n/a (2 seeds)]" in text) == flagged
     assert ("2 seeds only: no interval" in text) == flagged
     assert (" *" in text) != flagged  # a resolved sign needs 3 seeds
-    interval = payload["paired"]["decoupled - static @ 10: articulated t!=0"]
+    interval = payload["paired"]["decoupled - static @ 10: articulated t=±1"]
     assert interval["n"] == len(seeds) and interval["low"] == pytest.approx(4.0)
 
 
@@ -146,7 +146,7 @@ def test_mean_interval_contains_the_mean_and_shifts_with_the_data(
 
 
 def run(seed: int, budget: int, variant: str, articulated: float) -> StudyRun:
-    scores = dict.fromkeys(METRICS, 0.0) | {"articulated t!=0": articulated}
+    scores = dict.fromkeys(METRICS, 0.0) | {"articulated t=±1": articulated}
     return StudyRun(seed, budget, variant, scores, {}, 0.0, 1.0)
 
 
@@ -160,7 +160,7 @@ def test_paired_differences_pair_by_seed_and_budget() -> None:
         run(0, 20, "decoupled", 0.0),
         run(2, 20, "decoupled", 99.0),  # no rigid partner: left out
     ]
-    paired = paired_differences(runs, "articulated t!=0", "decoupled", "rigid")
+    paired = paired_differences(runs, "articulated t=±1", "decoupled", "rigid")
     assert paired[10].mean == pytest.approx(2.5) and paired[10].n == 2
     assert paired[20].mean == pytest.approx(-1.0) and paired[20].n == 1
 
@@ -229,7 +229,7 @@ def test_quick_study_writes_the_report(quick_study: tuple[Path, str]) -> None:
     for pair in ("decoupled - static", "decoupled - rigid", "true motion (oracle) - static"):
         assert f"| {pair} | 300 | 2 |" in text, pair
     assert "static - single-frame" in text
-    assert "decoupled - static on articulated t!=0" in text
+    assert "decoupled - static on articulated t=±1" in text
     assert "the ground-truth motion (oracle) gains" in text
     assert text in stdout  # the report is also printed
     # the progress counter reaches its total: one line per run, lifted-labels included
@@ -238,7 +238,7 @@ def test_quick_study_writes_the_report(quick_study: tuple[Path, str]) -> None:
     assert f"study: {runs} runs, {fits} of them fits" in stdout
     counters = [line.split()[0] for line in stdout.splitlines() if line.startswith("[")]
     assert counters == [f"[{i}/{runs}" for i in range(1, runs + 1)]
-    assert "lifted-labels (no fit): articulated t!=0" in stdout
+    assert "lifted-labels (no fit): articulated t=±1" in stdout
 
 
 @pytest.mark.slow
@@ -263,7 +263,7 @@ def test_quick_study_json_holds_every_run(quick_study: tuple[Path, str]) -> None
             auc = r["mask"]["mask AUC"]
             assert auc is None or 0 <= auc <= 1
     assert set(payload["summary"]) == {str(b) for b in QUICK_STUDY.budgets}
-    assert "decoupled - rigid @ 300: articulated t!=0" in payload["paired"]
+    assert "decoupled - rigid @ 300: articulated t=±1" in payload["paired"]
     assert "decoupled - static @ 300: HCM t=0" in payload["paired"]
 
 
@@ -283,4 +283,4 @@ def test_paired_report_marks_resolved_signs() -> None:
     text, payload = study_report(runs, StudyConfig(seeds=(0, 1, 2), budgets=(10,)))
     line = next(x for x in text.splitlines() if x.startswith("| decoupled - static | 10 |"))
     assert "4.00 [4.00, 4.00] *" in line
-    assert payload["paired"]["decoupled - static @ 10: articulated t!=0"]["mean"] == 4.0
+    assert payload["paired"]["decoupled - static @ 10: articulated t=±1"]["mean"] == 4.0

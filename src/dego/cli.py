@@ -1,12 +1,13 @@
-"""The ``dego`` command: ``dego demo``, ``dego study`` and ``dego eval``.
+"""The ``dego`` command: ``dego demo``, ``dego study``, ``dego train`` and ``dego eval``.
 
 ``dego demo`` runs DeGO end to end on a synthetic clip: it renders the clip, fits
 canonical Gaussians from the pseudo labels only without deformation, with a rigid-only
 and with a decoupled deformation, voxelises them at every frame, scores them against
 each frame's ground truth (weak protocol, RayIoU, moving agents), prints one table and
 writes pictures. ``dego study`` repeats the fits over seeds and Gaussian budgets and
-reports means with confidence intervals. ``dego eval`` scores a folder of Occ3D-nuScenes
-predictions (:mod:`dego.evaluation.command`).
+reports means with confidence intervals. ``dego train`` trains a feed-forward network on
+many scenes with and without deformation (:mod:`dego.demo.feedforward`). ``dego eval``
+scores a folder of Occ3D-nuScenes predictions (:mod:`dego.evaluation.command`).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from dego.demo import (
     score_clip,
 )
 from dego.demo.clip import MAX_DEMO_FRAMES, max_gaussians
+from dego.demo.feedforward.command import add_train_parser, train_main
 from dego.demo.fit import MAX_SEED
 from dego.evaluation import command as eval_command
 from dego.study import QUICK_STUDY, STUDY_VARIANTS, StudyConfig, run_study, write_study
@@ -56,19 +58,21 @@ PROGRAM_DESCRIPTION = (
     "Run Deformable Gaussian Occupancy (DeGO) end to end on synthetic driving clips. "
     "'dego demo' fits static, rigid and decoupled Gaussians (and reference rows) to one clip "
     "and scores them; 'dego study' repeats the fits over seeds and Gaussian budgets; "
+    "'dego train' trains a feed-forward network on many clips with and without deformation; "
     "'dego eval' scores a folder of Occ3D-nuScenes predictions."
 )
 DEMO_DESCRIPTION = (
     "Fit static, rigid and decoupled Gaussians to a synthetic clip from its pseudo labels, "
-    "beside three reference rows (single-frame, free offsets and the ground-truth true "
-    "motion), score them at every frame against the ground truth, print one table and "
-    "each variant's gain over static, and write results.md, results.json and pictures."
+    "beside four reference rows (single-frame, free offsets, free velocities and the "
+    "ground-truth true motion), score them at every frame against the ground truth, print "
+    "one table and each variant's gain over static, and write results.md, results.json and "
+    "pictures."
 )
 STUDY_DESCRIPTION = (
     "When does decoupling pay off? Fits the static, rigid and decoupled variants and the "
-    "reference rows (single-frame, free offsets, true motion) over seeds and Gaussian "
-    "budgets, scores them at every frame and reports means with 95% confidence intervals "
-    "and paired differences."
+    "reference rows (single-frame, free offsets, free velocities, true motion) over seeds "
+    "and Gaussian budgets, scores them at every frame and reports means with 95% confidence "
+    "intervals and paired differences."
 )
 
 BUDGETS = {
@@ -153,10 +157,18 @@ class ProgressBar:
         width = 24
         filled = width * done // max(self.total, 1)
         rate = done / max(now - self.start, 1e-9)
+        loss = f"loss {losses['total']:.3f} " if "total" in losses else ""
         return (
             f"{self.label:>10} [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} "
-            f"loss {losses['total']:.3f} {rate:.1f} it/s"
+            f"{loss}ETA {_clock((self.total - done) / rate)} {rate:.1f} it/s"
         )
+
+
+def _clock(seconds: float) -> str:
+    """``"1:05"`` / ``"1:02:05"``: a duration for a progress line."""
+    minutes, secs = divmod(round(seconds), 60)
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -251,6 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     study.add_argument("--no-pictures", action="store_true", help="skip the plot")
     study.set_defaults(command_parser=study)
+    add_train_parser(commands)
     evaluation = commands.add_parser(
         "eval",
         help="score Occ3D-nuScenes predictions: mIoU, IoU, InsM/ScnM/HCM, RayIoU",
@@ -276,12 +289,12 @@ def _add_device(parser: argparse.ArgumentParser) -> None:
 def _demo_frames(text: str) -> int:
     """``dego demo --frames``: an int in ``[2, MAX_DEMO_FRAMES]``. One frame is refused
     with its reason: the demo scores the deformation at the frames other than the
-    reference frame, and a one-frame clip has none (its ``t!=0`` columns and the gains
+    reference frame, and a one-frame clip has none (its ``t=±1`` columns and the gains
     on them would be undefined)."""
     if eval_command.parse_int(text) == 1:
         raise argparse.ArgumentTypeError(
             "expected at least 2: the demo scores the deformation at the frames other than "
-            "the reference frame (the t!=0 columns), and a 1-frame clip has none"
+            "the reference frame (the t=±1 columns), and a 1-frame clip has none"
         )
     return eval_command.bounded_int(2, MAX_DEMO_FRAMES)(text)
 
@@ -422,6 +435,8 @@ def _dispatch(argv: list[str] | None, created: list[Path]) -> int:
             return study_main(args, command_parser, created)
         if args.command == "eval":
             return eval_command.run(args, created=created)
+        if args.command == "train":
+            return train_main(args, command_parser, created)
         return demo_main(args, command_parser, created)
     except UsageError as error:
         command_parser.error(str(error))
@@ -481,15 +496,23 @@ LIFTED_ROW = row_name("lifted-labels")
 PICTURED_VARIANTS = ("static", "rigid", "decoupled", "true-motion")
 """Variants whose BEV at the last frame ``dego demo`` draws."""
 
-DEMO_VARIANTS = ("single-frame", *VARIANTS, "free-offsets", "true-motion")
+DEMO_VARIANTS = ("single-frame", *VARIANTS, "free-offsets", "free-velocities", "true-motion")
 """What ``dego demo`` fits, in table order: the fitted variants between their references."""
 
-GAIN_COLUMNS = ("articulated t!=0", "vehicles t!=0", "HCM", "mIoU")
+GAIN_COLUMNS = (
+    "articulated t=±1",
+    "articulated t=±2+",
+    "vehicles t=±1",
+    "vehicles t=±2+",
+    "HCM",
+    "mIoU",
+)
 """The columns of the demo's "gain over static" lines (HCM, mIoU: at t = 0)."""
 
 
 def paired_gains(scores: dict[str, ClipScore]) -> list[str]:
-    """One line per variant: its gain over ``static`` (points) on :data:`GAIN_COLUMNS`."""
+    """One line per variant: its gain over ``static`` (points) on :data:`GAIN_COLUMNS`
+    (a column the clip does not have, such as ``t=±2+`` of a 3-frame clip, is left out)."""
     if "static" not in scores:
         return []
     base = scores["static"].row()
@@ -499,7 +522,9 @@ def paired_gains(scores: dict[str, ClipScore]) -> list[str]:
             continue
         row = score.row()
         cells = ", ".join(
-            f"{c}{'' if 't!=0' in c else ' t=0'} {row[c] - base[c]:+.1f}" for c in GAIN_COLUMNS
+            f"{c}{'' if ' t=' in c else ' t=0'} {row[c] - base[c]:+.1f}"
+            for c in GAIN_COLUMNS
+            if not (math.isnan(row[c]) and math.isnan(base[c]))
         )
         lines.append(f"{name} - static: {cells}")
     return lines
@@ -576,10 +601,12 @@ TABLE_GUIDE = (
     "Columns, percent, weak protocol inside the camera mask: IoU (occupied vs free), mIoU "
     "(15 classes), InsM / ScnM / HCM (instance / scene / human-centric class means), RayIoU; "
     "at the reference frame t=0.",
-    "t!=0: pooled over the other frames, where the deformation acts; vehicles / articulated: "
+    "t=±1 / t=±2+: pooled over the frames one / two or more frames from the reference, where "
+    "the deformation acts; vehicles / articulated: "
     "IoU on moving vehicles / on pedestrians and cyclists (their voxels grown by one).",
     "Ceilings, not competitors: lifted labels (no learning) and true motion (oracle: the true "
-    "motion); initial: before fitting. Compare static, rigid and decoupled (DeGO).",
+    "motion); references: free offsets / free velocities (per frame / one per Gaussian, no "
+    "network); initial: before fitting. Compare static, rigid and decoupled (DeGO).",
 )
 """The three lines the demo prints under its table (and writes under it in results.md)."""
 

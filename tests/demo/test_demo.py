@@ -27,6 +27,7 @@ from dego.cli import (
     main,
 )
 from dego.demo import (
+    OFFSET_GROUPS,
     ROW_NAMES,
     VARIANTS,
     DemoClip,
@@ -51,7 +52,10 @@ PICTURES = [f"bev_{variant}.png" for variant in PICTURED_VARIANTS] + [
     f"camera_{variant}.png" for variant in VARIANTS
 ]
 COLUMNS = ["IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU"]
-COLUMNS_4D = [*COLUMNS, "mIoU t!=0", "HCM t!=0", "vehicles t!=0", "articulated t!=0"]
+COLUMNS_4D = [
+    *COLUMNS,
+    *(f"{m} {s}" for m in ("mIoU", "HCM", "vehicles", "articulated") for s in OFFSET_GROUPS),
+]
 FITTED_ROWS = [ROW_NAMES.get(v, v) for v in DEMO_VARIANTS]
 ROWS = [LIFTED_ROW, "initial", *FITTED_ROWS]
 
@@ -96,7 +100,7 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
     assert list(payload["percent"]) == ROWS
     for name, row in payload["percent"].items():
         assert list(row) == COLUMNS_4D
-        for column in ("IoU", "mIoU", "RayIoU", "mIoU t!=0"):
+        for column in ("IoU", "mIoU", "RayIoU", "mIoU t=±1"):
             assert row[column] is not None and math.isfinite(row[column]), (name, column)
         for value in row.values():
             assert value is None or 0 <= value <= 100, (name, row)
@@ -108,13 +112,15 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
     assert [line.split(" - static:")[0] for line in gains] == [
         r for r in FITTED_ROWS if r != "static"
     ]
-    assert "true motion (oracle) - static: articulated t!=0" in result.stdout
+    assert "true motion (oracle) - static: articulated t=±1" in result.stdout
+    assert "nan" not in " ".join(gains)  # a 3-frame clip has no t=±2+: those are left out
+    assert "free velocities - static: articulated t=±1" in result.stdout
     # the three-line reading guide right under the table, then the gains' heading
     lines = result.stdout.splitlines()
     last_row = max(i for i, line in enumerate(lines) if line.startswith("| "))
     assert lines[last_row + 1 : last_row + 5] == [*TABLE_GUIDE, GAINS_HEADING]
     assert len(TABLE_GUIDE) == 3
-    for column in ("IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU", "t!=0", "articulated"):
+    for column in ("IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU", "t=±1", "t=±2+", "articulated"):
         assert column in " ".join(TABLE_GUIDE), column
     for ceiling in ("lifted labels", "true motion"):
         assert ceiling in TABLE_GUIDE[2]
@@ -129,7 +135,11 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
     for study_run in run_study(config):
         row = payload["percent"][ROW_NAMES.get(study_run.variant, study_run.variant)]
         for metric, value in study_run.scores.items():
-            assert value == pytest.approx(row[metric.removesuffix(" t=0")], abs=1e-9), metric
+            expected = row[metric.removesuffix(" t=0")]
+            if expected is None:  # NaN in the JSON: no frame two away in a 3-frame clip
+                assert math.isnan(value), metric
+                continue
+            assert value == pytest.approx(expected, abs=1e-9), metric
     assert "| variant |" in (out / "results.md").read_text()
     for picture in [*PICTURES, "losses.png"]:
         assert (out / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", picture
@@ -379,6 +389,12 @@ def test_format_table() -> None:
     assert lines[2] == "| a | 1.00 | 2.00 | 3.00 | 4.00 | nan | 6.79 | 12.3 |"
     assert lines[3] == "| b | 0.00 | 0.00 | 0.00 | 0.00 | 0.00 | 0.00 | - |"
     assert "fit (s)" not in format_table(scores)  # type: ignore[arg-type]
+    # a column NaN in every row (t=±2+ of a 3-frame clip) is left out; NaN elsewhere stays
+    nan = float("nan")
+    scores = {"a": FixedScore([1, nan, 3, 4, nan, 6]), "b": FixedScore([0, nan, 0, 0, 1, 0])}
+    lines = format_table(scores).splitlines()  # type: ignore[arg-type]
+    assert lines[0] == "| variant | IoU | InsM | ScnM | HCM | RayIoU |"
+    assert lines[2] == "| a | 1.00 | 3.00 | 4.00 | nan | 6.00 |"
 
 
 def test_empty_prediction_scores_zero(clip: DemoClip) -> None:
@@ -458,7 +474,7 @@ def test_one_frame_is_refused_with_its_reason(
     assert exit_info.value.code == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith("dego demo: error: argument --frames: expected at least 2")
-    assert "t!=0" in line and "nan" not in line
+    assert "t=±1" in line and "nan" not in line
 
 
 def test_budgets() -> None:

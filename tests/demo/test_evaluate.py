@@ -3,6 +3,7 @@ the lifted-labels ceiling, the static variant and the class-balanced initialisat
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -19,6 +20,7 @@ from dego import (
 from dego.demo import (
     DYNAMIC_GROUPS,
     MOVABLE_CLASSES,
+    OFFSET_GROUPS,
     DemoClip,
     DynamicCounts,
     FitConfig,
@@ -28,6 +30,7 @@ from dego.demo import (
     fit_scene,
     gaussians_at,
     lift_labels,
+    offset_group,
     predict_clip,
     predict_labels,
     rigidity_mask,
@@ -175,16 +178,41 @@ def test_dynamic_regions_cover_the_moving_agents(clip: DemoClip) -> None:
 def test_ground_truth_scores_perfectly_and_empty_scores_zero(clip: DemoClip) -> None:
     score = score_clip(clip.occupancy, clip)
     row = score.row()
-    for column in ("IoU", "mIoU", "mIoU t!=0", "HCM t!=0", "vehicles t!=0", "articulated t!=0"):
+    for column in ("IoU", "mIoU", "mIoU t=±1", "HCM t=±1", "vehicles t=±1", "articulated t=±1"):
         assert row[column] == pytest.approx(100.0), column
     for index in range(clip.num_frames):
         for counts in dynamic_counts(clip.occupancy[index], clip, index).values():
             assert counts.intersection == counts.target == counts.predicted
+    assert math.isnan(row["mIoU t=±2+"]) and math.isnan(row["articulated t=±2+"])  # 3 frames
     empty = torch.full_like(clip.occupancy, 17)
     row = score_clip(empty, clip).row()
-    assert row["mIoU"] == 0 and row["articulated t!=0"] == 0 and row["vehicles t!=0"] == 0
+    assert row["mIoU"] == 0 and row["articulated t=±1"] == 0 and row["vehicles t=±1"] == 0
     with pytest.raises(ValueError, match="labels"):
         score_clip(clip.occupancy[:1], clip)
+
+
+def test_offset_groups_split_one_frame_from_two_or_more() -> None:
+    assert OFFSET_GROUPS == ("t=±1", "t=±2+")
+    assert [offset_group(t) for t in (-3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 5.0)] == [
+        "t=±2+",
+        "t=±2+",
+        "t=±1",
+        None,
+        "t=±1",
+        "t=±2+",
+        "t=±2+",
+    ]
+
+
+@pytest.mark.slow
+def test_frames_two_away_are_scored_apart(clip: DemoClip) -> None:
+    """Relabel the 3-frame clip's offsets as -2, 0, +2: the ground truth scores 100 in the
+    t=±2+ columns and the t=±1 columns are empty (NaN)."""
+    far = dataclasses.replace(clip, times=clip.times * 2)
+    row = score_clip(far.occupancy, far).row()
+    for metric in ("mIoU", "HCM", "vehicles", "articulated"):
+        assert row[f"{metric} t=±2+"] == pytest.approx(100.0), metric
+        assert math.isnan(row[f"{metric} t=±1"]), metric
 
 
 def test_dynamic_counts_add_and_iou() -> None:
@@ -204,7 +232,7 @@ def test_lifted_labels_are_a_high_ceiling(clip: DemoClip) -> None:
         [predict_labels(lift_labels(clip, i), clip) for i in range(clip.num_frames)]
     )
     row = score_clip(labels, clip).row()
-    assert row["mIoU"] > 40 and row["mIoU t!=0"] > 40 and row["articulated t!=0"] > 30
+    assert row["mIoU"] > 40 and row["mIoU t=±1"] > 40 and row["articulated t=±1"] > 30
 
 
 # -- variants and initialisation --------------------------------------------------------------

@@ -17,12 +17,14 @@ from dego.demo import (
     DemoClip,
     FitConfig,
     FrameOffsets,
+    FrameVelocities,
     GaussianSceneModel,
     agent_under,
     build_deformation,
     deformable,
     fit_scene,
     free_offsets,
+    free_velocities,
     gaussians_at,
     true_motion,
 )
@@ -99,6 +101,38 @@ def test_free_offsets_have_no_regulariser_and_learn(clip: DemoClip) -> None:
     assert terms is not None and terms["total"].item() == 0.0
     gaussians.means.sum().backward()
     assert module.offsets.grad is not None and module.offsets.grad[other].abs().sum() > 0
+
+
+def test_free_velocities_move_each_gaussian_by_t_times_v() -> None:
+    times = torch.tensor([-2.0, -1.0, 0.0, 1.0])
+    velocities = torch.randn(4, 3)
+    module = FrameVelocities(times, velocities)
+    gaussians = canonical(4)
+    out = module(gaussians, torch.zeros(1, 4, 0), torch.tensor([-2.0, 1.0, 0.0]))
+    torch.testing.assert_close(out.at(0).means, gaussians.means - 2 * velocities)
+    torch.testing.assert_close(out.at(1).means, gaussians.means + velocities)
+    torch.testing.assert_close(out.at(2).means, gaussians.means)
+    assert list(dict(module.named_parameters())) == ["offsets"]
+    assert module.velocities.shape == (4, 3) and module.fixed_mask == 0.0
+    # every frame's gradient lands on the one velocity, weighted by its offset
+    out.gaussians.means.sum().backward()
+    assert module.offsets.grad is not None
+    torch.testing.assert_close(module.offsets.grad[0], torch.full((4, 3), -2.0 + 1.0 + 0.0))
+    with pytest.raises(ValueError, match="velocities: expected shape"):
+        FrameVelocities(times, torch.zeros(4, 2))
+    with pytest.raises(ValueError, match="gaussians: expected batch shape"):
+        module(canonical(5), torch.zeros(1, 5, 0), torch.tensor([0.0]))
+
+
+def test_free_velocities_start_still_and_fit_through_the_demo(clip: DemoClip) -> None:
+    module = free_velocities(clip, 6)
+    assert isinstance(module, FrameVelocities) and not module.velocities.any()
+    built = build_deformation("free-velocities", FitConfig(num_gaussians=6), clip)
+    assert isinstance(built, FrameVelocities) and built.velocities.shape == (6, 3)
+    result = fit_scene(clip, "free-velocities", FitConfig(iterations=3, num_gaussians=40))
+    assert isinstance(result.deformation, FrameVelocities)
+    assert result.model.deform_classes == MOVABLE_CLASSES  # the same gating as the networks
+    assert all(math.isfinite(v) for v in result.history["total"])
 
 
 # -- the oracle ---------------------------------------------------------------------------

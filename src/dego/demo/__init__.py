@@ -12,12 +12,14 @@ from dego.demo.clip import DEMO_FRAME_DT, DemoClip, backproject
 from dego.demo.evaluate import (
     DYNAMIC_GROUPS,
     LIFT_SCALE,
+    OFFSET_GROUPS,
     ClipScore,
     DynamicCounts,
     dynamic_counts,
     dynamic_regions,
     lift_labels,
     lifted_clip_labels,
+    offset_group,
     predict_clip,
     score_clip,
     to_ego,
@@ -48,7 +50,14 @@ from dego.demo.model import (
     GaussianSceneModel,
     nearest_neighbour_distance,
 )
-from dego.demo.offsets import FrameOffsets, agent_under, free_offsets, true_motion
+from dego.demo.offsets import (
+    FrameOffsets,
+    FrameVelocities,
+    agent_under,
+    free_offsets,
+    free_velocities,
+    true_motion,
+)
 from dego.demo.score import (
     OCCUPANCY_THRESHOLD,
     VariantScore,
@@ -65,6 +74,7 @@ __all__ = [
     "LOSS_TERMS",
     "MOVABLE_CLASSES",
     "OCCUPANCY_THRESHOLD",
+    "OFFSET_GROUPS",
     "REFERENCE_VARIANTS",
     "ROW_NAMES",
     "VARIANTS",
@@ -74,6 +84,7 @@ __all__ = [
     "FitConfig",
     "FitResult",
     "FrameOffsets",
+    "FrameVelocities",
     "GaussianSceneModel",
     "VariantScore",
     "agent_under",
@@ -87,6 +98,7 @@ __all__ = [
     "fit_scene",
     "format_table",
     "free_offsets",
+    "free_velocities",
     "gaussians_at",
     "initial_model",
     "lift_labels",
@@ -94,6 +106,7 @@ __all__ = [
     "mask_by_group",
     "most_likely_in",
     "nearest_neighbour_distance",
+    "offset_group",
     "predict_clip",
     "predict_labels",
     "render",

@@ -145,30 +145,46 @@ def lift_labels(clip: DemoClip, index: int, scale: float = LIFT_SCALE) -> Gaussi
     return to_ego(world, clip, index)
 
 
+OFFSET_GROUPS: tuple[str, ...] = ("t=±1", "t=±2+")
+"""How the frames other than the reference are pooled: one frame from it (offset +-1) and
+two or more (in the demo's 5-frame clips: exactly +-2). Pooling them together hid how fast
+a fit's gain falls with the offset."""
+
+
+def offset_group(offset: float) -> str | None:
+    """The :data:`OFFSET_GROUPS` entry of a frame offset (``None`` for the reference)."""
+    if offset == 0:
+        return None
+    return OFFSET_GROUPS[0] if abs(offset) == 1 else OFFSET_GROUPS[1]
+
+
 @dataclasses.dataclass(frozen=True)
 class ClipScore:
     """Scores of one variant over a clip.
 
     Attributes:
         reference: the reference frame's weak-protocol metrics and RayIoU.
-        others: weak-protocol metrics pooled over every other frame (``None`` for a
-            one-frame clip).
+        others: per :data:`OFFSET_GROUPS` entry, weak-protocol metrics pooled over its
+            frames (``None`` where the clip has none: a 3-frame clip has no +-2).
         dynamic: per group of :data:`DYNAMIC_GROUPS`, :class:`DynamicCounts` at the
-            reference frame (``"reference"``) and pooled over the others (``"others"``).
+            reference frame (``"reference"``) and pooled per :data:`OFFSET_GROUPS` entry.
     """
 
     reference: VariantScore
-    others: OccupancyReport | None
+    others: dict[str, OccupancyReport | None]
     dynamic: dict[str, dict[str, DynamicCounts]]
 
     def row(self) -> dict[str, float]:
         """The demo table's columns, percent (NaN where undefined)."""
         values = dict(self.reference.row())
-        others = self.others
-        values["mIoU t!=0"] = percent(others.miou) if others else math.nan
-        values["HCM t!=0"] = percent(others.hcm) if others else math.nan
+        for metric in ("mIoU", "HCM"):
+            for scope in OFFSET_GROUPS:
+                report = self.others.get(scope)
+                value = getattr(report, metric.lower()) if report is not None else math.nan
+                values[f"{metric} {scope}"] = percent(value)
         for name in DYNAMIC_GROUPS:
-            values[f"{name} t!=0"] = percent(self.dynamic[name]["others"].iou)
+            for scope in OFFSET_GROUPS:
+                values[f"{name} {scope}"] = percent(self.dynamic[name][scope].iou)
         return values
 
 
@@ -179,21 +195,23 @@ def score_clip(labels: Int[Tensor, "T X Y Z"], clip: DemoClip) -> ClipScore:
         raise ValueError(
             f"labels: expected one grid per frame ({clip.num_frames}), got {labels.shape[0]}"
         )
-    others = OccupancyMetrics("weak")
-    dynamic = {
-        name: {"reference": DynamicCounts(), "others": DynamicCounts()} for name in DYNAMIC_GROUPS
-    }
-    for index in range(clip.num_frames):
-        scope = "reference" if index == clip.reference else "others"
-        if index != clip.reference:
-            others.update(
+    others = {scope: OccupancyMetrics("weak") for scope in OFFSET_GROUPS}
+    seen: set[str] = set()
+    scopes = ("reference", *OFFSET_GROUPS)
+    dynamic = {name: dict.fromkeys(scopes, DynamicCounts()) for name in DYNAMIC_GROUPS}
+    for index, offset in enumerate(clip.times.tolist()):
+        scope = offset_group(offset) if index != clip.reference else None
+        if scope is not None:
+            seen.add(scope)
+            others[scope].update(
                 labels[index].cpu(), clip.occupancy[index].cpu(), clip.mask_camera[index].cpu()
             )
         for name, counts in dynamic_counts(labels[index], clip, index).items():
-            dynamic[name][scope] = dynamic[name][scope] + counts
+            key = scope or "reference"
+            dynamic[name][key] = dynamic[name][key] + counts
     return ClipScore(
         reference=score_labels(labels[clip.reference], clip),
-        others=others.compute() if clip.num_frames > 1 else None,
+        others={s: (others[s].compute() if s in seen else None) for s in OFFSET_GROUPS},
         dynamic=dynamic,
     )
 

@@ -25,28 +25,39 @@ from dego.demo.model import (
     LatentInit,
     check_initialisation,
 )
-from dego.demo.offsets import FrameOffsets, free_offsets, true_motion
+from dego.demo.offsets import FrameOffsets, free_offsets, free_velocities, true_motion
 from dego.gaussians import GaussianSet
 from dego.splatting import SplatOutput, splat
 
-Variant = Literal["static", "rigid", "decoupled", "single-frame", "free-offsets", "true-motion"]
+Variant = Literal[
+    "static", "rigid", "decoupled", "single-frame", "free-offsets", "free-velocities", "true-motion"
+]
 VARIANTS: tuple[Variant, ...] = ("static", "rigid", "decoupled")
 """The fitted variants. ``static``: no deformation at all (the canonical Gaussians are used
 at every frame; only the ego moves); ``rigid``: position offsets only (rigidity mask fixed
 at 0, the GaussianFlowOcc-style baseline); ``decoupled``: DeGO's learned rigid / nonrigid
 mask and full deformation."""
 
-REFERENCE_VARIANTS: tuple[Variant, ...] = ("single-frame", "free-offsets", "true-motion")
+REFERENCE_VARIANTS: tuple[Variant, ...] = (
+    "single-frame",
+    "free-offsets",
+    "free-velocities",
+    "true-motion",
+)
 """Reference rows, not competitors. ``single-frame``: only the reference frame's views, as
 many steps as a multi-frame fit gives that frame (what the other frames' labels add at
 t = 0); ``free-offsets``: a position offset per (frame, Gaussian) optimised directly, no
-network and no regulariser (what a per-Gaussian lookup table reaches); ``true-motion``:
+network and no regulariser (what a per-Gaussian lookup table reaches);
+``free-velocities``: one velocity per Gaussian, the offset at frame offset t being ``t *
+v`` (same gating, no network, no ground truth: what a constant-velocity motion model
+reaches when every frame pulls on the same parameters); ``true-motion``:
 the agents' true motion from the synthetic scene held fixed (**uses the ground truth**: a
 ceiling for position offsets)."""
 
 ROW_NAMES: dict[str, str] = {
     "lifted-labels": "lifted labels (no learning)",
     "free-offsets": "free offsets",
+    "free-velocities": "free velocities",
     "true-motion": "true motion (oracle)",
 }
 """How the tables name a variant where it differs from its id."""
@@ -97,7 +108,8 @@ class FitConfig:
         hidden_dim, depth, head_hidden: the deformation network's size (the paper uses
             256 / 6 / 256; the demo is smaller to run in minutes on a CPU).
         lr: Adam learning rates per parameter group (missing groups take the defaults;
-            ``"offsets"``: the ``free-offsets`` reference's per-frame offsets).
+            ``"offsets"``: the parameters of the ``free-offsets`` and ``free-velocities``
+            references).
         depth_weight: weight of the L1 depth loss (per metre).
         deformation_weight: weight of ``deformation_loss(...).total`` (0.001; it was 0.1
             in dego 0.1.0: then ``L_reg``, a mean over *Gaussians*, cost ~0.08 at the
@@ -250,7 +262,8 @@ def build_deformation(
     scene: SyntheticScene | None = None,
 ) -> DecoupledDeformation | FrameOffsets | None:
     """The deformation of ``variant``: the ``paper``-preset network (``rigid``:
-    ``fixed_mask=0``), :func:`~dego.demo.offsets.free_offsets` (``free-offsets``), the
+    ``fixed_mask=0``), :func:`~dego.demo.offsets.free_offsets` (``free-offsets``),
+    :func:`~dego.demo.offsets.free_velocities` (``free-velocities``), the
     oracle :func:`~dego.demo.offsets.true_motion` (``true-motion``: needs the canonical
     ``means`` and the clip's ``scene``), or ``None`` (``static``, ``single-frame``)."""
     if variant not in VARIANTS + REFERENCE_VARIANTS:
@@ -266,9 +279,10 @@ def build_deformation(
                 "canonical means); pass scene=..."
             )
         return true_motion(scene, clip, means)
-    if variant == "free-offsets":
+    if variant in ("free-offsets", "free-velocities"):
         n = config.num_gaussians if means is None else means.shape[0]
-        return free_offsets(clip, n)
+        make = free_offsets if variant == "free-offsets" else free_velocities
+        return make(clip, n)
     largest_offset = float(clip.times.abs().max().clamp_min(1))
     return DecoupledDeformation(
         config.latent_dim,
@@ -397,7 +411,8 @@ def fit_scene(
     deformation = build_deformation(variant, config, clip, means=model.means.detach(), scene=scene)
     if deformation is not None:
         deformation = deformation.to(clip.depth.device)
-    if variant in ("rigid", "decoupled", "free-offsets") and config.deform == "movable":
+    free = variant in ("free-offsets", "free-velocities")
+    if (variant in ("rigid", "decoupled") or free) and config.deform == "movable":
         model.deform_classes = MOVABLE_CLASSES
     groups = [
         {"params": [getattr(model, name)], "lr": config.lr[name]}
@@ -406,7 +421,7 @@ def fit_scene(
     groups.append({"params": [model.latent], "lr": config.lr["latent"]})
     trainable = [] if deformation is None else list(deformation.parameters())
     if trainable:
-        rate = config.lr["offsets" if variant == "free-offsets" else "deformation"]
+        rate = config.lr["offsets" if free else "deformation"]
         groups.append({"params": trainable, "lr": rate})
     optimizer = torch.optim.Adam(groups)
 

@@ -1,4 +1,5 @@
-"""Per-frame position offsets: the demo's ``free offsets`` and ``true motion (oracle)`` rows.
+"""Per-frame position offsets: the demo's ``free offsets``, ``free velocities`` and
+``true motion (oracle)`` rows.
 
 Both stand in for a deformation network where :func:`~dego.demo.gaussians_at` expects
 one: called like :class:`~dego.DecoupledDeformation` they return a
@@ -64,12 +65,13 @@ class FrameOffsets(nn.Module):
         clip); ``features`` (the latent) is unused."""
         del features
         index = _frame_index(self.times, times)
-        if tuple(gaussians.batch_shape) != (1,) or gaussians.num_gaussians != self.offsets.shape[1]:
+        n = self.num_gaussians
+        if tuple(gaussians.batch_shape) != (1,) or gaussians.num_gaussians != n:
             raise ValueError(
-                f"gaussians: expected batch shape (1,) with N = {self.offsets.shape[1]}, got "
+                f"gaussians: expected batch shape (1,) with N = {n}, got "
                 f"{tuple(gaussians.batch_shape)} with N = {gaussians.num_gaussians}"
             )
-        d_means = self.offsets[index][None]  # (1, T, N, 3)
+        d_means = self.frame_offsets(index)[None]  # (1, T, N, 3)
         t, n = d_means.shape[1], d_means.shape[2]
         identity = torch.zeros(1, t, n, 4, dtype=d_means.dtype, device=d_means.device)
         deformed = gaussians.map(lambda _, value: value[:, None].expand(-1, t, *value.shape[1:]))
@@ -86,6 +88,38 @@ class FrameOffsets(nn.Module):
             loss_weights=NO_REGULARISER,
         )
 
+    @property
+    def num_gaussians(self) -> int:
+        return self.offsets.shape[1]
+
+    def frame_offsets(self, index: Int[Tensor, " T"]) -> Float[Tensor, "T N 3"]:
+        """The ``(T, N, 3)`` offsets of the frames at ``index`` into :attr:`times`."""
+        return self.offsets[index]
+
+
+class FrameVelocities(FrameOffsets):
+    """One trainable velocity per Gaussian: the offset at frame offset t is ``t * v``
+    (metres per frame), so every frame's labels pull on the same few numbers (the
+    ``free velocities`` reference: constant-velocity motion, no network, no regulariser).
+
+    Args:
+        times: ``(T,)`` the clip's frame offsets. velocities: ``(N, 3)`` initial velocities.
+    """
+
+    def __init__(self, times: Float[Tensor, " T"], velocities: Float[Tensor, "N 3"]) -> None:
+        if velocities.ndim != 2 or velocities.shape[1] != 3:
+            raise ValueError(f"velocities: expected shape (N, 3), got {tuple(velocities.shape)}")
+        nn.Module.__init__(self)  # (1, N, 3), not FrameOffsets' (T, N, 3)
+        self.register_buffer("times", times.detach().clone())
+        self.offsets = nn.Parameter(velocities.detach().clone()[None])
+
+    @property
+    def velocities(self) -> Tensor:
+        return self.offsets[0]
+
+    def frame_offsets(self, index: Int[Tensor, " T"]) -> Float[Tensor, "T N 3"]:
+        return self.times[index][:, None, None] * self.offsets  # (T, 1, 1) * (1, N, 3)
+
 
 def _frame_index(frame_times: Tensor, times: Tensor) -> Tensor:
     match = times.to(frame_times)[:, None] == frame_times[None]
@@ -100,6 +134,12 @@ def free_offsets(clip: DemoClip, num_gaussians: int) -> FrameOffsets:
     """Zero-initialised trainable offsets for every frame and Gaussian."""
     zeros = torch.zeros(clip.num_frames, num_gaussians, 3, device=clip.depth.device)
     return FrameOffsets(clip.times, zeros, trainable=True)
+
+
+def free_velocities(clip: DemoClip, num_gaussians: int) -> FrameVelocities:
+    """Zero-initialised trainable velocities, one per Gaussian."""
+    zeros = torch.zeros(num_gaussians, 3, device=clip.depth.device)
+    return FrameVelocities(clip.times, zeros)
 
 
 def agent_under(means: Float[Tensor, "N 3"], clip: DemoClip) -> Int[Tensor, " N"]:
@@ -136,14 +176,29 @@ def true_motion(scene: SyntheticScene, clip: DemoClip, means: Float[Tensor, "N 3
     ):
         raise ValueError("scene: expected the SyntheticScene that clip was made from")
     agent = agent_under(means, clip)  # (N,), 1-based
-    translations = torch.stack(
+    offsets = agent_offsets(agent_translations(scene).to(means), agent.to(means.device))
+    return FrameOffsets(clip.times.to(means.device), offsets, trainable=False)
+
+
+def agent_translations(scene: SyntheticScene) -> Float[Tensor, "T A 3"]:
+    """``(T, A, 3)`` float64: how far each agent of ``scene`` moves from the reference
+    frame to each frame (synthetic agents keep their heading: a translation)."""
+    return torch.stack(
         [
             torch.stack(
                 [(a.pose(offset * scene.frame_dt) - a.pose(0.0))[:3, 3] for a in scene.agents]
             )
+            if scene.agents
+            else torch.zeros(0, 3, dtype=torch.float64)
             for offset in scene.offsets
         ]
-    )  # (T, A, 3) float64
-    padded = torch.cat([translations.new_zeros(len(scene.offsets), 1, 3), translations], 1)
-    offsets = padded.to(means)[:, agent.to(means.device)]  # (T, N, 3); id 0 -> no motion
-    return FrameOffsets(clip.times.to(means.device), offsets, trainable=False)
+    )
+
+
+def agent_offsets(
+    translations: Float[Tensor, "T A 3"], agent: Int[Tensor, "*batch N"]
+) -> Float[Tensor, "T *batch N 3"]:
+    """Each point's offset at every frame: the translation of the agent it belongs to
+    (``agent``: 1-based ids as :func:`agent_under` gives them, 0: no agent, no motion)."""
+    padded = torch.cat([translations.new_zeros(translations.shape[0], 1, 3), translations], 1)
+    return padded[:, agent]

@@ -75,13 +75,16 @@ class _Scored(Protocol):
 
 def format_table(rows: Mapping[str, _Scored], seconds: dict[str, float] | None = None) -> str:
     """A Markdown table with one row per variant: the columns of the scores' ``row()``
-    (percent; NaN where undefined), and the fit time where ``seconds`` has one."""
-    columns = list(next(iter(rows.values())).row()) if rows else []
+    (percent; NaN where undefined; a column NaN in every row, such as ``t=±2+`` of a
+    3-frame clip, is left out), and the fit time where ``seconds`` has one."""
+    values = {name: score.row() for name, score in rows.items()}
+    columns = list(next(iter(values.values()))) if values else []
+    columns = [c for c in columns if not all(math.isnan(row[c]) for row in values.values())]
     head = "| variant | " + " | ".join(columns) + (" | fit (s) |" if seconds else " |")
     rule = "|---|" + "---:|" * (len(columns) + (1 if seconds else 0))
     lines = [head, rule]
-    for name, score in rows.items():
-        cells = [_cell(v) for v in score.row().values()]
+    for name, row in values.items():
+        cells = [_cell(row[c]) for c in columns]
         if seconds:
             cells.append(f"{seconds[name]:.1f}" if name in seconds else "-")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")

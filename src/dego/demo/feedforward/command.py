@@ -1,0 +1,177 @@
+"""``dego train``: the command line of the feed-forward study (:mod:`.study`)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from dego.demo.feedforward.data import default_cache
+from dego.demo.feedforward.study import (
+    PRESETS,
+    FeedForwardStudyConfig,
+    run_feedforward_study,
+    write_feedforward_study,
+)
+from dego.demo.feedforward.training import FEEDFORWARD_VARIANTS
+
+TRAIN_DESCRIPTION = (
+    "The paper's regime in miniature: one small CNN predicts a Gaussian per image block of "
+    "six cameras for every synthetic scene, trained from pseudo labels only with dego's "
+    "splatting and weak losses, as single-frame, static, rigid, decoupled (DeGO) and the "
+    "true-motion oracle; scored on held-out scenes at t = 0 (IoU, mIoU, InsM, ScnM, HCM, "
+    "RayIoU, moving agents). Writes train.md, train.json and pictures."
+)
+
+TRAIN_DURATION = (
+    "the default (one seed, five variants) took 21-27 minutes on 2 idle CPU cores, "
+    "rendering the scenes included (the cache makes a second run skip that); --quick about "
+    "half a minute"
+)
+"""How long ``dego train`` takes, as its ``--help`` and docs/feedforward.md say it."""
+
+MAX_SCENES = 10_000
+"""The most scenes per split ``--train-scenes`` / ``--heldout-scenes`` take."""
+
+
+def add_train_parser(commands: Any) -> argparse.ArgumentParser:
+    """Add ``dego train`` to the ``dego`` command's subparsers."""
+    from dego import cli
+    from dego.evaluation import command as eval_command
+
+    default, quick, full = PRESETS["cpu"], PRESETS["quick"], PRESETS["full"]
+    parser = commands.add_parser(
+        "train",
+        help="train a feed-forward Gaussian network on many scenes, with and without deformation",
+        description=TRAIN_DESCRIPTION,
+        epilog=f"How long: {TRAIN_DURATION}.",
+    )
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"the wiring only: {quick.data.train_scenes} tiny scenes, {quick.train.steps} steps",
+    )
+    size.add_argument(
+        "--full",
+        action="store_true",
+        help=f"the study: seeds {cli._format_ints(full.seeds)} (for a GPU: --device cuda)",
+    )
+    parser.add_argument(
+        "--seeds", type=cli._int_list, help=f"seeds, e.g. 0-2 ({cli._format_ints(default.seeds)})"
+    )
+    parser.add_argument(
+        "--variants",
+        type=cli._name_list,
+        help=f"comma-separated, some of {', '.join(FEEDFORWARD_VARIANTS)} (all)",
+    )
+    parser.add_argument(
+        "--steps",
+        type=eval_command.bounded_int(0, cli.MAX_ITERATIONS),
+        help=f"optimiser steps per variant ({default.train.steps})",
+    )
+    parser.add_argument(
+        "--train-scenes",
+        type=eval_command.bounded_int(1, MAX_SCENES),
+        help=f"training scenes per seed ({default.data.train_scenes})",
+    )
+    parser.add_argument(
+        "--heldout-scenes",
+        type=eval_command.bounded_int(1, MAX_SCENES),
+        help=f"held-out scenes per seed ({default.data.heldout_scenes})",
+    )
+    cli._add_device(parser)
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help=f"folder of the rendered scenes ({default_cache()})",
+    )
+    parser.add_argument("--no-cache", action="store_true", help="render the scenes, keep none")
+    parser.add_argument(
+        "--out", type=Path, default=Path("dego-train"), help="output folder (./dego-train)"
+    )
+    parser.add_argument("--no-pictures", action="store_true", help="skip the pictures")
+    parser.set_defaults(command_parser=parser)
+    return parser
+
+
+def study_config(args: argparse.Namespace) -> FeedForwardStudyConfig:
+    """The study the flags ask for (``ValueError`` naming a field on a bad value)."""
+    base = PRESETS["quick" if args.quick else "full" if args.full else "cpu"]
+    changes: dict[str, Any] = {}
+    if args.seeds is not None:
+        changes["seeds"] = args.seeds
+    if args.variants is not None:
+        changes["variants"] = args.variants
+    data = {
+        name: getattr(args, name)
+        for name in ("train_scenes", "heldout_scenes")
+        if getattr(args, name) is not None
+    }
+    if data:
+        changes["data"] = dataclasses.replace(base.data, **data)
+    if args.steps is not None:
+        changes["train"] = dataclasses.replace(base.train, steps=args.steps)
+    return dataclasses.replace(base, **changes)
+
+
+def train_main(
+    args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
+) -> int:
+    """``dego train``: check the flags, create ``--out`` and the cache, run, write."""
+    from dego import cli
+    from dego._version import __version__
+
+    try:
+        config = study_config(args)
+    except ValueError as error:
+        field, _, message = str(error).partition(": ")
+        parser.error(f"--{field.replace('_', '-')}: {message or error}")
+    cache = None
+    if not args.no_cache:
+        cache = args.cache if args.cache is not None else default_cache()
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            probe = cache / f".dego-write-test-{time.time_ns()}"
+            probe.touch()
+            probe.unlink()
+        except OSError as error:
+            parser.error(f"--cache: {cache}: {error.strerror or error}")
+    created += cli._output_dir(parser, "--out", args.out)
+    data, steps = config.data, config.train.steps
+    print(
+        f"dego {__version__} train: seeds {cli._format_ints(config.seeds)}, variants "
+        f"{', '.join(config.variants)}; {data.train_scenes} training + {data.heldout_scenes} "
+        f"held-out scenes per seed, {steps} steps per variant, {args.device}; scenes cached in "
+        f"{cache if cache is not None else '(nowhere: --no-cache)'}",
+        flush=True,
+    )
+    start = time.perf_counter()
+    bars: dict[str, cli.ProgressBar] = {}
+
+    def progress(label: str, step: int, total: int, loss: float) -> None:
+        if label not in bars:
+            bars[label] = cli.ProgressBar(label, total)
+        bars[label](step, {} if math.isnan(loss) else {"total": loss})
+
+    def note(line: str) -> None:
+        print(f"[{time.perf_counter() - start:.0f} s] {line}", flush=True)
+
+    device = str(args.device)
+    result = run_feedforward_study(
+        config, cache=cache, device=torch.device(device), progress=progress, note=note
+    )
+    wall = time.perf_counter() - start
+    report, paths = write_feedforward_study(
+        result, config, args.out, wall_seconds=wall, device=device, pictures=not args.no_pictures
+    )
+    print(report)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    print(f"total {wall:.1f} s")
+    return 0

@@ -1,0 +1,149 @@
+"""``dego train``: bad flags are usage errors before any work; --quick runs every variant."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import dego.demo.feedforward.command as command
+from dego.cli import main
+from dego.demo.feedforward import FEEDFORWARD_VARIANTS
+from dego.demo.feedforward.study import (
+    PRESETS,
+    FeedForwardRuns,
+    FeedForwardStudyConfig,
+    feedforward_report,
+)
+from dego.study import StudyRun
+
+
+@pytest.fixture
+def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    def started(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the study started")
+
+    monkeypatch.setattr(command, "run_feedforward_study", started)
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--steps", "-1"], "argument --steps"),
+        (["--steps", "ten"], "argument --steps"),
+        (["--seeds", "2-1"], "argument --seeds"),
+        (["--seeds", "0,0"], "argument --seeds"),
+        (["--variants", "static,warp"], "--variants: unknown ['warp']"),
+        (["--variants", "static,static"], "argument --variants"),
+        (["--train-scenes", "0"], "argument --train-scenes"),
+        (["--heldout-scenes", "x"], "argument --heldout-scenes"),
+        (["--quick", "--full"], "not allowed with argument"),
+        (["--device", "tpu"], "argument --device"),
+    ],
+)
+def test_bad_flags_are_usage_errors_before_any_work(
+    flags: list[str],
+    message: str,
+    tmp_path: Path,
+    no_work: None,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", *flags, "--cache", str(tmp_path / "cache"), "--out", str(out)])
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("dego train: error:") and message in line, line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("flag", ["--cache", "--out"])
+def test_an_unwritable_cache_or_out_is_a_usage_error(
+    flag: str, tmp_path: Path, no_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("in the way")  # a folder below a file cannot exist, root or not
+    target = {"--cache": tmp_path / "cache", "--out": tmp_path / "out", flag: blocker / "x"}
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--cache", str(target["--cache"]), "--out", str(target["--out"])])
+    assert exit_info.value.code == 2
+    assert f"error: {flag}:" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_presets_and_flags_make_the_study_asked_for() -> None:
+    parser = command.add_train_parser.__globals__["argparse"].ArgumentParser()
+    subparsers = parser.add_subparsers()
+    train = command.add_train_parser(subparsers)
+    args = train.parse_args(["--full", "--steps", "7", "--variants", "static,decoupled"])
+    config = command.study_config(args)
+    assert config.seeds == PRESETS["full"].seeds and len(config.seeds) >= 3
+    assert config.train.steps == 7 and config.variants == ("static", "decoupled")
+    assert command.study_config(train.parse_args([])) == PRESETS["cpu"]
+    assert PRESETS["cpu"].variants == FEEDFORWARD_VARIANTS
+
+
+def _runs(values: dict[str, list[float]]) -> FeedForwardRuns:
+    runs = [
+        StudyRun(seed, 100, variant, dict.fromkeys(
+            ("IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU", "vehicles", "articulated"), v
+        ), {}, float("nan"), 1.0)
+        for variant, per_seed in values.items()
+        for seed, v in enumerate(per_seed)
+    ]  # fmt: skip
+    return FeedForwardRuns(runs, {}, None, 0.0)
+
+
+def test_the_report_gives_intervals_and_answers_the_questions() -> None:
+    result = _runs(
+        {
+            "single-frame": [10.0, 11.0, 12.0],
+            "static": [8.0, 9.0, 10.5],
+            "decoupled": [9.0, 10.0, 11.0],
+            "true-motion": [12.0, 13.0, 14.0],
+        }
+    )
+    config = FeedForwardStudyConfig(
+        seeds=(0, 1, 2), variants=("single-frame", "static", "decoupled", "true-motion")
+    )
+    text, payload = feedforward_report(result, config, wall_seconds=12.0, device="cpu")
+    assert "| static | 9.17 [" in text
+    assert "static - single-frame on HCM at t = 0: -1.83 [" in text
+    assert "the interval excludes 0 (negative)" in text
+    paired = payload["paired"]["true-motion - static: HCM"]
+    assert paired["mean"] == pytest.approx(23 / 6) and paired["n"] == 3
+    assert "rigid - static: HCM" not in payload["paired"]  # rigid was not run
+    one = FeedForwardStudyConfig(seeds=(0,), variants=("static", "decoupled"))
+    text, _ = feedforward_report(
+        _runs({"static": [1.0], "decoupled": [2.0]}), one, wall_seconds=1.0, device="cpu"
+    )
+    assert "no intervals" in text and "1 seed(s): no interval" in text
+
+
+@pytest.mark.slow
+def test_quick_runs_every_variant_and_writes_its_outputs(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    result = subprocess.run(
+        [
+            *(sys.executable, "-m", "dego", "train", "--quick"),
+            *("--cache", str(tmp_path / "cache"), "--out", str(out)),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    payload = json.loads((out / "train.json").read_text())
+    assert [r["variant"] for r in payload["runs"]] == list(FEEDFORWARD_VARIANTS)
+    assert payload["settings"]["train"]["steps"] == PRESETS["quick"].train.steps
+    for variant in FEEDFORWARD_VARIANTS:
+        assert (out / f"heldout_{variant}.png").stat().st_size > 1000
+    assert "| true motion (oracle) |" in (out / "train.md").read_text()
+    assert "ETA" in result.stderr  # the progress bar
+    assert list((tmp_path / "cache").glob("scenes-*/scene-*.npz"))
