@@ -26,14 +26,19 @@ def test_typed_marker_is_shipped() -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "script, args",
+    "script, args, expect",
     [
-        ("bench_gaussians.py", ["--n", "500", "--repeats", "2"]),
-        ("bench_deformation.py", ["--n", "300", "--t", "3", "--channels", "16", "--repeats", "1"]),
+        ("bench_gaussians.py", ["--n", "500", "--repeats", "2"], "speed-up"),
+        (
+            "bench_deformation.py",
+            ["--n", "300", "--t", "3", "--channels", "16", "--repeats", "1"],
+            "speed-up",
+        ),
+        ("bench_feedforward.py", ["--repeats", "1"], "splatting and losses"),
     ],
 )
 def test_benchmark_script_runs_on_a_small_case(
-    source_tree: Path, script: str, args: list[str]
+    source_tree: Path, script: str, args: list[str], expect: str
 ) -> None:
     result = subprocess.run(
         [sys.executable, str(source_tree / "benchmarks" / script), *args],
@@ -42,7 +47,7 @@ def test_benchmark_script_runs_on_a_small_case(
         timeout=300,
     )
     assert result.returncode == 0, result.stderr
-    assert "speed-up" in result.stdout
+    assert expect in result.stdout
 
 
 # -- the README and the repository's small promises -----------------------------------------

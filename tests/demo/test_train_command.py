@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 import dego.demo.feedforward.command as command
 from dego.cli import main
@@ -147,3 +148,35 @@ def test_quick_runs_every_variant_and_writes_its_outputs(tmp_path: Path) -> None
     assert "| true motion (oracle) |" in (out / "train.md").read_text()
     assert "ETA" in result.stderr  # the progress bar
     assert list((tmp_path / "cache").glob("scenes-*/scene-*.npz"))
+
+
+def test_help_the_docs_and_the_readme_agree(source_tree: Path) -> None:
+    from dego.cli import build_parser
+
+    parser = build_parser()
+    train = parser._subparsers._group_actions[0].choices["train"]  # type: ignore[union-attr]
+    text = " ".join(train.format_help().split())
+    assert command.TRAIN_DURATION in text and "--device" in text and "--cache" in text
+    page = " ".join((source_tree / "docs" / "feedforward.md").read_text().split())
+    assert command.TRAIN_DURATION in page
+    for flag in ("--quick", "--full", "--seeds", "--variants", "--steps", "--cache", "--out"):
+        assert flag in page and flag in text, flag
+    for variant in FEEDFORWARD_VARIANTS:
+        assert f"`{variant}`" in page or variant == "true-motion", variant
+    readme = (source_tree / "README.md").read_text()
+    assert "dego train" in readme and "docs/feedforward.md" in readme
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_quick_runs_on_cuda(tmp_path: Path) -> None:
+    code = main(
+        [
+            *("train", "--quick", "--device", "cuda", "--cache", str(tmp_path / "c")),
+            *("--out", str(tmp_path / "out"), "--no-pictures"),
+        ]
+    )
+    assert code == 0
+    payload = json.loads((tmp_path / "out" / "train.json").read_text())
+    assert payload["settings"]["device"] == "cuda"
+    assert all(r["scores"]["IoU"] is not None for r in payload["runs"])

@@ -11,6 +11,16 @@ from typing import Any
 
 import torch
 
+from dego._cli_args import (
+    MAX_ITERATIONS,
+    ProgressBar,
+    add_device,
+    format_ints,
+    int_list,
+    name_list,
+    output_dir,
+)
+from dego._version import __version__
 from dego.demo.feedforward.data import default_cache
 from dego.demo.feedforward.study import (
     PRESETS,
@@ -19,6 +29,7 @@ from dego.demo.feedforward.study import (
     write_feedforward_study,
 )
 from dego.demo.feedforward.training import FEEDFORWARD_VARIANTS
+from dego.evaluation import command as eval_command
 
 TRAIN_DESCRIPTION = (
     "The paper's regime in miniature: one small CNN predicts a Gaussian per image block of "
@@ -41,9 +52,6 @@ MAX_SCENES = 10_000
 
 def add_train_parser(commands: Any) -> argparse.ArgumentParser:
     """Add ``dego train`` to the ``dego`` command's subparsers."""
-    from dego import cli
-    from dego.evaluation import command as eval_command
-
     default, quick, full = PRESETS["cpu"], PRESETS["quick"], PRESETS["full"]
     parser = commands.add_parser(
         "train",
@@ -60,19 +68,19 @@ def add_train_parser(commands: Any) -> argparse.ArgumentParser:
     size.add_argument(
         "--full",
         action="store_true",
-        help=f"the study: seeds {cli._format_ints(full.seeds)} (for a GPU: --device cuda)",
+        help=f"the study: seeds {format_ints(full.seeds)} (for a GPU: --device cuda)",
     )
     parser.add_argument(
-        "--seeds", type=cli._int_list, help=f"seeds, e.g. 0-2 ({cli._format_ints(default.seeds)})"
+        "--seeds", type=int_list, help=f"seeds, e.g. 0-2 ({format_ints(default.seeds)})"
     )
     parser.add_argument(
         "--variants",
-        type=cli._name_list,
+        type=name_list,
         help=f"comma-separated, some of {', '.join(FEEDFORWARD_VARIANTS)} (all)",
     )
     parser.add_argument(
         "--steps",
-        type=eval_command.bounded_int(0, cli.MAX_ITERATIONS),
+        type=eval_command.bounded_int(0, MAX_ITERATIONS),
         help=f"optimiser steps per variant ({default.train.steps})",
     )
     parser.add_argument(
@@ -85,7 +93,7 @@ def add_train_parser(commands: Any) -> argparse.ArgumentParser:
         type=eval_command.bounded_int(1, MAX_SCENES),
         help=f"held-out scenes per seed ({default.data.heldout_scenes})",
     )
-    cli._add_device(parser)
+    add_device(parser)
     parser.add_argument(
         "--cache",
         type=Path,
@@ -125,9 +133,6 @@ def train_main(
     args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
 ) -> int:
     """``dego train``: check the flags, create ``--out`` and the cache, run, write."""
-    from dego import cli
-    from dego._version import __version__
-
     try:
         config = study_config(args)
     except ValueError as error:
@@ -143,21 +148,21 @@ def train_main(
             probe.unlink()
         except OSError as error:
             parser.error(f"--cache: {cache}: {error.strerror or error}")
-    created += cli._output_dir(parser, "--out", args.out)
+    created += output_dir(parser, "--out", args.out)
     data, steps = config.data, config.train.steps
     print(
-        f"dego {__version__} train: seeds {cli._format_ints(config.seeds)}, variants "
+        f"dego {__version__} train: seeds {format_ints(config.seeds)}, variants "
         f"{', '.join(config.variants)}; {data.train_scenes} training + {data.heldout_scenes} "
         f"held-out scenes per seed, {steps} steps per variant, {args.device}; scenes cached in "
         f"{cache if cache is not None else '(nowhere: --no-cache)'}",
         flush=True,
     )
     start = time.perf_counter()
-    bars: dict[str, cli.ProgressBar] = {}
+    bars: dict[str, ProgressBar] = {}
 
     def progress(label: str, step: int, total: int, loss: float) -> None:
         if label not in bars:
-            bars[label] = cli.ProgressBar(label, total)
+            bars[label] = ProgressBar(label, total)
         bars[label](step, {} if math.isnan(loss) else {"total": loss})
 
     def note(line: str) -> None:

@@ -80,7 +80,7 @@ PRESETS: dict[str, FeedForwardStudyConfig] = {
     "quick": FeedForwardStudyConfig(
         seeds=(0,),
         data=DataConfig(train_scenes=2, heldout_scenes=1, image_size=(32, 88)),
-        train=TrainConfig(steps=3, width=8, hidden_dim=16, head_hidden=16),
+        train=TrainConfig(steps=3, block=8, width=8, hidden_dim=16, head_hidden=16),
     ),
     "cpu": FeedForwardStudyConfig(),
     "full": FeedForwardStudyConfig(seeds=(0, 1, 2)),
