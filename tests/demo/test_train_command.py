@@ -113,6 +113,7 @@ def test_the_report_gives_intervals_and_answers_the_questions() -> None:
     )
     text, payload = feedforward_report(result, config, wall_seconds=12.0, device="cpu")
     assert "| static | 9.17 [" in text
+    assert "| 0 | 10.0 / 10.0 / 10.0 / 10.0 | 8.0 / 8.0 / 8.0 / 8.0 |" in text  # per seed
     assert "static - single-frame on HCM at t = 0: -1.83 [" in text
     assert "the interval excludes 0 (negative)" in text
     paired = payload["paired"]["true-motion - static: HCM"]
@@ -180,3 +181,46 @@ def test_quick_runs_on_cuda(tmp_path: Path) -> None:
     payload = json.loads((tmp_path / "out" / "train.json").read_text())
     assert payload["settings"]["device"] == "cuda"
     assert all(r["scores"]["IoU"] is not None for r in payload["runs"])
+
+
+def test_the_docs_tables_are_the_recorded_run(source_tree: Path) -> None:
+    """docs/feedforward.md's tables are the report of the run recorded beside it."""
+    import math
+
+    from dego.demo.feedforward import DataConfig, TrainConfig
+
+    payload = json.loads((source_tree / "docs" / "results" / "feedforward-train.json").read_text())
+
+    def nan(value: float | None) -> float:
+        return math.nan if value is None else value
+
+    runs = [
+        StudyRun(
+            **{
+                **r,
+                "scores": {k: nan(v) for k, v in r["scores"].items()},
+                "per_articulated_agent": nan(r["per_articulated_agent"]),
+            }
+        )
+        for r in payload["runs"]
+    ]
+    settings = payload["settings"]
+    data = {**settings["data"], "image_size": tuple(settings["data"]["image_size"])}
+    config = FeedForwardStudyConfig(
+        seeds=tuple(settings["seeds"]),
+        variants=tuple(settings["variants"]),
+        data=DataConfig(**data),
+        train=TrainConfig(**settings["train"]),
+    )
+    assert config.train == PRESETS["cpu"].train  # the defaults were what ran
+    text, _ = feedforward_report(
+        FeedForwardRuns(runs, {}, None, settings["data_seconds"]),
+        config,
+        wall_seconds=settings["wall_seconds"],
+        device=settings["device"],
+    )
+    page = (source_tree / "docs" / "feedforward.md").read_text()
+    tables = [line for line in text.splitlines() if line.startswith("|")]
+    assert len(tables) >= 2 + len(config.variants)
+    for line in tables:
+        assert line in page, line

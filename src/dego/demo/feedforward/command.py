@@ -40,9 +40,10 @@ TRAIN_DESCRIPTION = (
 )
 
 TRAIN_DURATION = (
-    "the default (one seed, five variants) took 21-27 minutes on 2 idle CPU cores, "
-    "rendering the scenes included (the cache makes a second run skip that); --quick about "
-    "half a minute"
+    "the default (one seed, five variants of 800 steps) took 16.5 minutes on 2 idle CPU "
+    "cores with its 80 scenes cached, plus 2.5 minutes to render them the first time; "
+    "another job on the same cores can make it several times slower (torch threads "
+    "compete); --quick took about a minute beside another job"
 )
 """How long ``dego train`` takes, as its ``--help`` and docs/feedforward.md say it."""
 

@@ -104,6 +104,9 @@ back; ``true-motion - static``: what ground-truth motion would have bought."""
 PAIRED_SCORES = ("HCM", "mIoU", "articulated", "vehicles", "IoU", "RayIoU")
 """The scores of the paired-difference table."""
 
+PER_SEED_SCORES = ("mIoU", "HCM", "vehicles", "articulated")
+"""The scores of the per-seed table."""
+
 PICTURED_SCENE = 0
 """Which held-out scene (of the first seed) the pictures show."""
 
@@ -252,6 +255,23 @@ def feedforward_report(
         lines.append(
             f"| {row_name(first)} - {row_name(second)} | {n} | " + " | ".join(cells) + " |"
         )
+    variants = list(summary)
+    lines += [
+        "",
+        f"Per seed, {' / '.join(PER_SEED_SCORES)}:",
+        "",
+        "| seed | " + " | ".join(row_name(v) for v in variants) + " |",
+        "|---:|" + "---|" * len(variants),
+    ]
+    by_key = {(r.seed, r.variant): r.scores for r in runs}
+    for seed in config.seeds:
+        cells = [
+            " / ".join(f"{by_key[seed, v][s]:.1f}" for s in PER_SEED_SCORES)
+            if (seed, v) in by_key
+            else "-"
+            for v in variants
+        ]
+        lines.append(f"| {seed} | " + " | ".join(cells) + " |")
     lines += ["", "## Reading", "", *_reading(differences)]
     payload = {
         "units": UNIT,
