@@ -96,17 +96,8 @@ class StudyConfig:
 
     def __post_init__(self) -> None:
         for name in ("seeds", "budgets", "variants"):
-            values = getattr(self, name)
-            if not values:
-                raise ValueError(f"{name}: expected at least one value, got {values!r}")
-            repeated = sorted({v for v in values if values.count(v) > 1}, key=values.index)
-            if repeated:
-                raise ValueError(
-                    f"{name}: {', '.join(map(str, repeated))} repeated; each value runs once"
-                )
-        for seed in self.seeds:
-            if check_int("seeds", seed, 0) > MAX_SEED:
-                raise ValueError(f"seeds: expected ints in [0, {MAX_SEED}], got {seed!r}")
+            check_distinct(name, getattr(self, name))
+        check_seeds(self.seeds)
         check_int("frames", self.frames, 2)
         if self.frames > MAX_DEMO_FRAMES:
             raise ValueError(
@@ -125,6 +116,22 @@ class StudyConfig:
             raise ValueError(f"variants: unknown {unknown}; expected some of {STUDY_VARIANTS}")
         if not (math.isfinite(self.mask_prior) and self.mask_prior >= 0):
             raise ValueError(f"mask_prior: expected a finite weight >= 0, got {self.mask_prior!r}")
+
+
+def check_distinct(name: str, values: tuple) -> None:
+    """``values`` of the config field ``name`` is not empty and names each value once."""
+    if not values:
+        raise ValueError(f"{name}: expected at least one value, got {values!r}")
+    repeated = sorted({v for v in values if values.count(v) > 1}, key=values.index)
+    if repeated:
+        raise ValueError(f"{name}: {', '.join(map(str, repeated))} repeated; each value runs once")
+
+
+def check_seeds(seeds: tuple[int, ...]) -> None:
+    """Every one of ``seeds`` is an int in ``[0, MAX_SEED]``."""
+    for seed in seeds:
+        if check_int("seeds", seed, 0) > MAX_SEED:
+            raise ValueError(f"seeds: expected ints in [0, {MAX_SEED}], got {seed!r}")
 
 
 QUICK_STUDY = StudyConfig(

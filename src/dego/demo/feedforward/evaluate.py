@@ -13,7 +13,7 @@ from dego.demo.evaluate import DYNAMIC_GROUPS, DynamicCounts, dynamic_counts
 from dego.demo.feedforward.data import SceneRecord
 from dego.demo.feedforward.network import GaussianPredictor
 from dego.demo.feedforward.training import predict
-from dego.demo.score import predict_labels
+from dego.demo.score import VariantScore, predict_labels
 from dego.metrics import OccupancyMetrics, RayIoU
 
 SCORES = ("IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU", "vehicles", "articulated")
@@ -46,17 +46,8 @@ def score_scenes(labels: Sequence[Tensor], records: Sequence[SceneRecord]) -> di
         rays.update(grid.cpu(), target, record.ray_origins.cpu())
         for name, counts in dynamic_counts(grid, clip, 0).items():
             dynamic[name] = dynamic[name] + counts
-    report, ray_report = occupancy.compute(), rays.compute()
-    values = {
-        "IoU": report.iou,
-        "mIoU": report.miou,
-        "InsM": report.insm,
-        "ScnM": report.scnm,
-        "HCM": report.hcm,
-        "RayIoU": ray_report.rayiou,
-        **{name: counts.iou for name, counts in dynamic.items()},
-    }
-    return {name: percent(value) for name, value in values.items()}
+    row = VariantScore(occupancy.compute(), rays.compute()).row()
+    return row | {name: percent(counts.iou) for name, counts in dynamic.items()}
 
 
 def evaluate(network: GaussianPredictor, records: Sequence[SceneRecord]) -> dict[str, float]:

@@ -30,12 +30,14 @@ from dego.demo.feedforward.data import (
 )
 from dego.demo.feedforward.evaluate import SCORES, predict_scene_labels, score_scenes
 from dego.demo.feedforward.training import FEEDFORWARD_VARIANTS, TrainConfig, predict, train
-from dego.demo.fit import MAX_SEED, row_name
+from dego.demo.fit import row_name
 from dego.study import (
     MIN_INTERVAL_SEEDS,
     Interval,
     StudyRun,
     _json_safe,
+    check_distinct,
+    check_seeds,
     mean_interval,
     paired_differences,
 )
@@ -58,17 +60,8 @@ class FeedForwardStudyConfig:
 
     def __post_init__(self) -> None:
         for name in ("seeds", "variants"):
-            values = getattr(self, name)
-            if not values:
-                raise ValueError(f"{name}: expected at least one value, got {values!r}")
-            repeated = sorted({v for v in values if values.count(v) > 1}, key=values.index)
-            if repeated:
-                raise ValueError(
-                    f"{name}: {', '.join(map(str, repeated))} repeated; each value runs once"
-                )
-        for seed in self.seeds:
-            if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
-                raise ValueError(f"seeds: expected ints in [0, {MAX_SEED}], got {seed!r}")
+            check_distinct(name, getattr(self, name))
+        check_seeds(self.seeds)
         unknown = sorted(set(self.variants) - set(FEEDFORWARD_VARIANTS))
         if unknown:
             raise ValueError(
