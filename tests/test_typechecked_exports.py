@@ -44,6 +44,7 @@ MODULES = (
     "dego.teacher",
     "dego.voxelizer",
     "dego.viz",
+    "dego.viz.rerun",
     "dego.raycast",
     "dego.grid",
     "dego.encoding",

@@ -1,4 +1,4 @@
-"""The ``dego`` command: ``dego demo``, ``dego study``, ``dego train`` and ``dego eval``.
+"""The ``dego`` command: ``demo``, ``study``, ``train``, ``eval`` and ``view``.
 
 ``dego demo`` runs DeGO end to end on a synthetic clip: it renders the clip, fits
 canonical Gaussians from the pseudo labels only without deformation, with a rigid-only
@@ -8,14 +8,18 @@ writes pictures. ``dego study`` repeats the fits over seeds and Gaussian budgets
 reports means with confidence intervals. ``dego train`` trains a feed-forward network on
 many scenes with and without deformation (:mod:`dego.demo.feedforward`). ``dego eval``
 scores a folder of Occ3D-nuScenes predictions (:mod:`dego.evaluation.command`).
+``--rerun FILE.rrd`` on ``dego demo`` and ``dego eval`` records what they computed for
+rerun's viewer, which ``dego view`` opens (:mod:`dego.viz.rerun`).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -26,7 +30,7 @@ from typing import TextIO
 
 import torch
 
-from dego._atomic import remove_empty_dirs, write_files
+from dego._atomic import check_output_file, remove_empty_dirs, write_files
 from dego._cli_args import MAX_ITERATIONS, ProgressBar
 from dego._cli_args import MAX_LIST_VALUES as MAX_LIST_VALUES  # re-exported: the docs' bound
 from dego._cli_args import add_device as _add_device
@@ -59,13 +63,15 @@ from dego.demo.feedforward.command import add_train_parser, train_main
 from dego.demo.fit import MAX_SEED
 from dego.evaluation import command as eval_command
 from dego.study import QUICK_STUDY, STUDY_VARIANTS, StudyConfig, run_study, write_study
+from dego.viz.eval_recording import DEFAULT_LIMIT, MAX_RECORDED_SAMPLES
 
 PROGRAM_DESCRIPTION = (
     "Run Deformable Gaussian Occupancy (DeGO) end to end on synthetic driving clips. "
     "'dego demo' fits static, rigid and decoupled Gaussians (and reference rows) to one clip "
     "and scores them; 'dego study' repeats the fits over seeds and Gaussian budgets; "
     "'dego train' trains a feed-forward network on many clips with and without deformation; "
-    "'dego eval' scores a folder of Occ3D-nuScenes predictions."
+    "'dego eval' scores a folder of Occ3D-nuScenes predictions; 'dego view' opens a "
+    "recording of demo or eval (--rerun) in rerun's viewer."
 )
 DEMO_DESCRIPTION = (
     "Fit static, rigid and decoupled Gaussians to a synthetic clip from its pseudo labels, "
@@ -169,6 +175,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, default=Path("dego-demo"), help="output folder (./dego-demo)"
     )
     demo.add_argument("--no-pictures", action="store_true", help="skip the pictures")
+    demo.add_argument(
+        "--rerun",
+        type=Path,
+        metavar="FILE.rrd",
+        help="also record the clip, the ground truth and every variant's predictions and "
+        "Gaussians over the frames for rerun's viewer (open it with: dego view FILE.rrd)",
+    )
     demo.set_defaults(command_parser=demo)
 
     default, quick_study = StudyConfig(), QUICK_STUDY
@@ -228,7 +241,31 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=eval_command.EPILOG,
     )
     eval_command.add_arguments(evaluation)
+    recording = evaluation.add_argument_group("recording for rerun's viewer")
+    recording.add_argument(
+        "--rerun",
+        type=Path,
+        metavar="FILE.rrd",
+        help="also record ground truth beside prediction for the first --limit samples",
+    )
+    recording.add_argument(
+        "--limit",
+        type=eval_command.bounded_int(1, MAX_RECORDED_SAMPLES),
+        help=f"samples --rerun records, 1-{MAX_RECORDED_SAMPLES:,} ({DEFAULT_LIMIT}); "
+        "every sample is still scored",
+    )
     evaluation.set_defaults(command_parser=evaluation)
+    view = commands.add_parser(
+        "view",
+        help="open a .rrd recording (dego demo --rerun, dego eval --rerun) in rerun's viewer",
+        description="Open a rerun recording in rerun's viewer: the native viewer where there "
+        "is a screen, or with --web rerun's web viewer, served from this machine.",
+    )
+    view.add_argument("file", type=Path, metavar="FILE.rrd", help="the recording")
+    view.add_argument(
+        "--web", action="store_true", help="serve rerun's web viewer instead (headless, SSH)"
+    )
+    view.set_defaults(command_parser=view)
     return parser
 
 
@@ -330,7 +367,9 @@ def _dispatch(argv: list[str] | None, created: list[Path]) -> int:
         if args.command == "study":
             return study_main(args, command_parser, created)
         if args.command == "eval":
-            return eval_command.run(args, created=created)
+            return eval_main(args, command_parser, created)
+        if args.command == "view":
+            return view_main(args, command_parser)
         if args.command == "train":
             return train_main(args, command_parser, created)
         return demo_main(args, command_parser, created)
@@ -353,8 +392,73 @@ def demo_main(
             f"camera pixel of the clip), got {budget['gaussians']}"
         )
     created += _output_dir(parser, "--out", args.out)
+    created += _rerun_target(parser, args.rerun)
     device = torch.device(args.device)
-    return run_demo(args.seed, budget, device, args.out, pictures=not args.no_pictures)
+    return run_demo(
+        args.seed, budget, device, args.out, pictures=not args.no_pictures, rerun=args.rerun
+    )
+
+
+def _rerun_target(parser: argparse.ArgumentParser, path: Path | None) -> list[Path]:
+    """Check ``--rerun`` before any work (rerun-sdk present, a ``.rrd`` file that can be
+    written; its folder is created) or exit with a usage error; returns the folders made."""
+    if path is None:
+        return []
+    if importlib.util.find_spec("rerun") is None:
+        parser.error('--rerun: needs rerun-sdk: pip install "dego-occupancy[rerun]"')
+    if path.suffix != ".rrd":
+        parser.error(f"--rerun: expected a file name ending in .rrd, got {str(path)!r}")
+    try:
+        return check_output_file(path)
+    except OSError as error:
+        parser.error(f"--rerun: {error.strerror or error}")
+
+
+def eval_main(
+    args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
+) -> int:
+    """``dego eval``: score (:func:`dego.evaluation.command.run`), then, with ``--rerun``,
+    record the first ``--limit`` samples (rank 0 only under torchrun)."""
+    if args.limit is not None and args.rerun is None:
+        parser.error("--limit: only with --rerun (every sample is scored either way)")
+    created += _rerun_target(parser, args.rerun)
+    code = eval_command.run(args, created=created)
+    if args.rerun is None or code == 2 or os.environ.get("RANK", "0") != "0":
+        return code
+    from dego.viz.eval_recording import record_samples
+
+    start = time.perf_counter()
+    recorded = record_samples(
+        args.rerun,
+        args.gt,
+        args.pred,
+        limit=DEFAULT_LIMIT if args.limit is None else args.limit,
+        infos=args.infos,
+        missing=args.missing,
+    )
+    print(
+        f"wrote {recorded.path} ({recorded.recorded} samples, "
+        f"{recorded.path.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - start:.1f} s)"
+    )
+    for token, reason in recorded.failed.items():
+        print(f"  not recorded: {token}: {reason}", file=sys.stderr)
+    return code
+
+
+def view_main(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """``dego view FILE.rrd [--web]``: open the recording; 1 with one line where no viewer
+    can start here."""
+    from dego.viz.viewer import ViewerUnavailableError, check_recording, open_viewer
+
+    try:
+        check_recording(args.file)
+    except ValueError as error:
+        parser.error(str(error))
+    try:
+        return open_viewer(args.file, web=args.web)
+    except ViewerUnavailableError as error:
+        print(f"dego view: {error}", file=sys.stderr)
+        return 1
 
 
 def _isatty(stream: TextIO) -> bool:
@@ -422,10 +526,18 @@ def _learns_mask(result: FitResult) -> bool:
 
 
 def run_demo(
-    seed: int, budget: dict[str, int], device: torch.device, out: Path, *, pictures: bool = True
+    seed: int,
+    budget: dict[str, int],
+    device: torch.device,
+    out: Path,
+    *,
+    pictures: bool = True,
+    rerun: Path | None = None,
 ) -> int:
     """Run the demo and write ``results.md``, ``results.json`` and pictures to ``out``,
-    all or nothing (a failure leaves the previous run's files as they were)."""
+    all or nothing (a failure leaves the previous run's files as they were); with
+    ``rerun``, first a recording of the clip and every variant there
+    (:mod:`dego.demo.recording`)."""
     print(
         f"dego {__version__} demo: seed {seed}, {budget['frames']} frames x 6 cameras, "
         f"{budget['gaussians']} Gaussians, {budget['iterations']} iterations per variant, "
@@ -475,6 +587,23 @@ def run_demo(
             + ", ".join(f"{group} {value:.3f}" for group, value in summary.items())
         )
 
+    if rerun is not None:
+        from dego.demo.recording import record_demo
+
+        began = time.perf_counter()
+        record_demo(
+            rerun,
+            clip,
+            labels,
+            results,
+            row_names={r.variant: row_name(r.variant) for r in results},
+            pictured=PICTURED_VARIANTS,
+            learns_mask=[r.variant for r in results if _learns_mask(r)],
+        )
+        print(
+            f"wrote {rerun} ({rerun.stat().st_size / 1e6:.1f} MB, "
+            f"{time.perf_counter() - began:.1f} s; open it with: dego view {rerun})"
+        )
     drawn = _pictures(out, clip, labels, results) if pictures else {}
     written = _write_results(
         out, table, gains, scores, seconds, masks, seed, budget, device, pictures=drawn
