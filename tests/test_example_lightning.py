@@ -6,7 +6,9 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import logging
 import math
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
@@ -40,11 +42,40 @@ def example(source_tree: Path) -> Iterator[ModuleType]:
     torch._dynamo.reset()
 
 
+class _Records(logging.Handler):
+    """Keeps the messages of the records it handles."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+def _from_dego(text: str) -> bool:
+    """Whether a warning or log message points into dego's own files."""
+    source = str(Path(composite.__file__).resolve().parents[1])
+    return source in text or "src/dego/" in text or "site-packages/dego/" in text
+
+
 @pytest.mark.slow
 def test_compiled_bf16_fit_logs_both_metrics(example: ModuleType, tmp_path: Path) -> None:
     kernels = composite.COMPILED_KERNELS
-    summary = example.main([*ARGV, "--out", str(tmp_path)])
+    dynamo_log = _Records()  # dynamo reports graph breaks on its logger, not as warnings
+    logging.getLogger("torch._dynamo").addHandler(dynamo_log)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            summary = example.main([*ARGV, "--out", str(tmp_path)])
+    finally:
+        logging.getLogger("torch._dynamo").removeHandler(dynamo_log)
     assert composite.COMPILED_KERNELS == kernels  # the example restores dego's setting
+    # the example runs clean: no warning from dego's files, no graph break anywhere
+    ours = [str(w.message) for w in caught if _from_dego(f"{w.filename} {w.message}")]
+    assert not ours, ours[0]
+    breaks = [m for m in dynamo_log.messages if "Graph break" in m]
+    assert not breaks, breaks[0]
 
     # every step ran the torch.compile'd loss function (no eager fallback) under bf16 autocast
     assert summary["compiled_steps"] == STEPS

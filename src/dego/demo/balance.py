@@ -23,7 +23,11 @@ class _BalancedGradient(torch.autograd.Function):
         (keep,) = ctx.saved_tensors
         norm = grad.norm(dim=-1, keepdim=True)  # (1, N, 1)
         active = keep[..., None] & (norm > 0)
-        scale = norm[active].mean() if bool(active.any()) else norm.new_ones(())
+        # the mean norm over the active Gaussians (1 where none is), without a host sync:
+        # a data-dependent branch would break a compiled backward's graph
+        count = active.sum()
+        total = torch.where(active, norm, 0).sum()
+        scale = torch.where(count > 0, total / count.clamp_min(1), 1.0).to(norm.dtype)
         balanced = torch.where(active, grad / norm.clamp_min(1e-30) * scale, grad)
         return balanced, grad - balanced, None
 
