@@ -102,6 +102,28 @@ def test_mixed_half_and_float32_inputs_are_accepted_under_autocast() -> None:
         splat(gaussians, inputs.world_to_cam, inputs.intrinsics, (HEIGHT, WIDTH), features=features)
 
 
+@pytest.mark.parametrize("dtype", HALF)
+def test_a_gaussian_set_takes_a_networks_features_under_autocast(dtype: torch.dtype) -> None:
+    # docs/training.md's pattern: GaussianSet(..., features=net(x)) inside autocast
+    inputs = make_inputs(n=40)
+    net = torch.nn.Linear(3, inputs.features.shape[-1])
+    with torch.autocast("cpu", dtype=dtype):
+        features = net(inputs.means.detach())
+        assert features.dtype == dtype
+        gaussians = gaussian_set(inputs).replace(features=features)
+        assert gaussians.dtype == torch.float32  # the geometry's dtype
+        out = splat(gaussians, inputs.world_to_cam, inputs.intrinsics, (HEIGHT, WIDTH))
+        voxels = voxelize(gaussians, GRID)
+    assert out.features.dtype == voxels.features.dtype == torch.float32
+    (out.features.sum() + voxels.features.sum()).backward()
+    assert net.weight.grad is not None and bool(net.weight.grad.abs().sum() > 0)
+    # outside autocast one floating dtype per set, and the message says when it is allowed
+    with pytest.raises(TypeError, match=r"features: dtype .* accepted under torch\.autocast"):
+        gaussian_set(inputs).replace(features=features.detach())
+    with torch.autocast("cpu", dtype=dtype), pytest.raises(TypeError, match="quats: dtype"):
+        gaussian_set(inputs).replace(quats=inputs.quats.to(dtype))  # geometry stays float32
+
+
 def test_bad_input_under_autocast_gets_the_eager_errors() -> None:
     inputs = make_inputs(n=20)
     gaussians = gaussian_set(inputs)

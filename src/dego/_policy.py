@@ -115,7 +115,8 @@ def compute_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float32 if dtype in HALF_DTYPES else dtype
 
 
-def _autocast_enabled(device_type: str) -> bool:
+def autocast_enabled(device_type: str) -> bool:
+    """Whether ``torch.autocast`` is on for ``device_type`` (``"cpu"``, ``"cuda"``)."""
     try:
         return torch.is_autocast_enabled(device_type)
     except TypeError:  # torch < 2.4: one query per device type
@@ -142,7 +143,7 @@ def float32_under_autocast(*, keep_autocast: bool = False) -> Callable[[F], F]:
                 (t.device.type for t in tree_leaves((args, kwargs)) if isinstance(t, Tensor)),
                 None,
             )
-            if device_type is None or not _autocast_enabled(device_type):
+            if device_type is None or not autocast_enabled(device_type):
                 return fn(*args, **kwargs)
             args, kwargs = tree_map(_to_float32, (args, kwargs))
             if keep_autocast:
@@ -303,6 +304,7 @@ __all__ = [
     "LOGITS_HINT",
     "LOG_SCALES_HINT",
     "Check",
+    "autocast_enabled",
     "check_dtype",
     "check_finite",
     "check_memory",

@@ -28,6 +28,8 @@ from dego._geometry import (
     unit_quaternions,
 )
 from dego._policy import (
+    HALF_DTYPES,
+    autocast_enabled,
     check_dtype,
     finite_check,
     float32_under_autocast,
@@ -260,10 +262,11 @@ class GaussianSet(_serialization.DictForm):
                 raise ValueError(
                     f"{_describe_expected(name, batch, n, channels)}, got {tuple(value.shape)}"
                 )
-            if value.dtype != means.dtype:
+            if value.dtype != means.dtype and not _autocast_features(name, value, means):
                 raise TypeError(
                     f"{name}: dtype {value.dtype} differs from means' dtype {means.dtype}; "
-                    "all fields must share one floating dtype"
+                    "all fields must share one floating dtype (features in float16 / "
+                    "bfloat16 beside float32 geometry are accepted under torch.autocast)"
                 )
             if value.device != means.device:
                 raise ValueError(
@@ -642,6 +645,18 @@ class GaussianSet(_serialization.DictForm):
             )
         )
         return self
+
+
+def _autocast_features(name: str, value: Tensor, means: Tensor) -> bool:
+    """Half-precision ``features`` beside float32 geometry while autocast is on for their
+    device: a network's output under autocast. The ops that need float32 (``splat``,
+    ``voxelize``, ...) cast them; the set's ``dtype`` is the geometry's."""
+    return (
+        name == "features"
+        and value.dtype in HALF_DTYPES
+        and means.dtype == torch.float32
+        and autocast_enabled(value.device.type)
+    )
 
 
 def _gaussian_axis(name: str, t: Tensor) -> int:
