@@ -383,3 +383,21 @@ def test_checkpoints_naming_classes_where_they_lived_before_a_split_still_load()
     assert b"deformation_results" not in buffer.getvalue()
     buffer.seek(0)
     assert torch.load(buffer, weights_only=True) == weights
+
+
+@needs_safe_globals
+def test_grids_and_deformation_losses_load_with_weights_only() -> None:
+    """Issue 41 (8): VoxelGrid and DeformationLoss load like the other dataclasses; a
+    pickled grid whose state breaks the constructor's checks is refused by them."""
+    from dego import VoxelGrid
+    from dego.deformation import DeformationLoss
+
+    grid = VoxelGrid(lower=(-2.0, -1.0, 0.0), upper=(2.0, 1.0, 1.0), voxel_size=0.25)
+    assert save_load(grid) == grid
+    loss = DeformationLoss(torch.tensor(0.5), torch.tensor(0.25), torch.tensor(0.75))
+    loaded = save_load(loss)
+    assert isinstance(loaded, DeformationLoss)
+    assert all(torch.equal(getattr(loaded, f), getattr(loss, f)) for f in ("reg", "mask", "total"))
+    object.__setattr__(grid, "upper", (-3.0, 1.0, 1.0))  # upper below lower on x
+    with pytest.raises(ValueError, match="upper"):
+        save_load(grid)

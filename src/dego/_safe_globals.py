@@ -11,8 +11,14 @@ from typing import Any
 
 import torch
 
-from dego.deformation import DeformationDeltas, DeformationLossWeights, DeformationOutput
+from dego.deformation import (
+    DeformationDeltas,
+    DeformationLoss,
+    DeformationLossWeights,
+    DeformationOutput,
+)
 from dego.gaussians import GaussianSet
+from dego.grid import VoxelGrid
 from dego.metrics.rayiou import RayIoUReport
 from dego.metrics.report import OccupancyReport
 from dego.splatting.projection import Projection
@@ -38,6 +44,8 @@ def safe_types() -> tuple[type, ...]:
         DeformationOutput,
         DeformationDeltas,
         DeformationLossWeights,
+        DeformationLoss,
+        VoxelGrid,
         TeacherOutput,
         OccupancyReport,
         RayIoUReport,

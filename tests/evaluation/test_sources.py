@@ -145,10 +145,10 @@ def test_gt_token_absent_from_the_tables(
     write_sample(gt, pred, first.scene_name, "tok-absent", 1)
     with pytest.raises(EvaluationSetupError, match=r"not keyframes there: 'tok-absent'$"):
         dego.evaluate(gt, pred, nuscenes=nus["tables"], version=VERSION)
-    # the CLI, with tables of another version: --version reaches the reader
+    # the CLI, with tables of another version: --nuscenes-version reaches the reader
     mini = write_tables(tmp_path / "mini", make_tables(nus["frames"]), "v1.0-mini")
     args = ["--gt", str(gt), "--pred", str(pred), "--nuscenes", str(mini)]
-    code, out, err = run_cli([*args, "--version", "v1.0-mini"], capsys)
+    code, out, err = run_cli([*args, "--nuscenes-version", "v1.0-mini"], capsys)
     assert code == 2 and out == ""
     assert err.startswith(f"error: --nuscenes {mini}: 1 sample(s)") and "'tok-absent'" in err
     assert "Traceback" not in err and err.count("\n") == 1
@@ -163,7 +163,7 @@ def test_a_deeply_nested_table_is_one_error_line(
     shutil.copytree(nus["tables"], tables)
     (tables / VERSION / "sample.json").write_text("[" * 100_000 + "]" * 100_000)
     args = ["--gt", str(nus["gt"]), "--pred", str(nus["pred"]), "--nuscenes", str(tables)]
-    code, out, err = run_cli([*args, "--version", VERSION], capsys)
+    code, out, err = run_cli([*args, "--nuscenes-version", VERSION], capsys)
     assert code == 2 and out == ""
     assert err.startswith("error: ") and "sample.json: not a readable JSON table" in err
     assert "Traceback" not in err and err.count("\n") == 1
@@ -251,8 +251,21 @@ def test_eval_help(capsys: pytest.CaptureFixture[str]) -> None:
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert out.startswith("usage: ")
-    for option in ("--infos", "--nuscenes", "--version", "--origins", "--workers", "--missing"):
+    options = ("--infos", "--nuscenes", "--nuscenes-version", "--origins", "--workers", "--missing")
+    for option in options:
         assert option in out, option
+    assert "--version" not in out.replace("--nuscenes-version", "")
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--version", "v1.0-mini"]])
+def test_eval_version_is_not_the_nuscenes_version(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        dego.cli.main(["eval", "--gt", "g", "--pred", "p", *argv])
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--nuscenes-version" in line and "dego --version" in line
 
 
 # ----------------------------------------------------------------------------------------

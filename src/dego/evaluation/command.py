@@ -121,6 +121,16 @@ def bounded_int(low: int, high: int) -> Callable[[str], int]:
     return parse
 
 
+class _NotTheNuScenesVersion(argparse.Action):
+    """``dego eval --version``: a usage error that points at the two meanings it could have."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object, **kwargs: object) -> None:
+        parser.error(
+            "--version: the nuScenes version of --nuscenes is --nuscenes-version; "
+            "dego's own version is 'dego --version'"
+        )
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dego eval`` (on an existing (sub)parser)."""
     parser.add_argument(
@@ -139,11 +149,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     )
     origins.add_argument("--nuscenes", type=Path, help="nuScenes root with the JSON tables")
     origins.add_argument(
-        "--version",
         "--nuscenes-version",
         dest="nuscenes_version",
         default="v1.0-trainval",
         help="nuScenes version of --nuscenes (v1.0-trainval)",
+    )
+    parser.add_argument(
+        "--version", nargs="?", action=_NotTheNuScenesVersion, help=argparse.SUPPRESS
     )
     origins.add_argument("--origins", type=Path, help="folder of <token>.npy (K, 3) origins")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU")

@@ -24,7 +24,7 @@ from dego.evaluation.errors import EvaluationSetupError, list_tokens
 
 NO_ORIGINS_MESSAGE = (
     "RayIoU needs ray origins: pass --infos FILE (mmdet3d nuscenes_infos_val.pkl), "
-    "--nuscenes ROOT [--version v1.0-trainval] or --origins DIR (<token>.npy), "
+    "--nuscenes ROOT [--nuscenes-version v1.0-trainval] or --origins DIR (<token>.npy), "
     "or --no-rayiou to skip RayIoU"
 )
 
