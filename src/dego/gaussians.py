@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, ClassVar
 
 import torch
@@ -478,6 +478,73 @@ class GaussianSet(_serialization.DictForm):
     def to(self, *args: Any, **kwargs: Any) -> GaussianSet:
         """Apply ``Tensor.to(*args, **kwargs)`` to every field (device and/or float dtype)."""
         return self.map(lambda _, t: t.to(*args, **kwargs))
+
+    def cpu(self) -> GaussianSet:
+        """The set on the CPU."""
+        return self.to("cpu")
+
+    def cuda(self, device: int | str | torch.device | None = None) -> GaussianSet:
+        """The set on a CUDA device (``None``: the current one), as ``Tensor.cuda``."""
+        return self.map(lambda _, t: t.cuda(device))
+
+    def float(self) -> GaussianSet:
+        """Every field in float32."""
+        return self.to(torch.float32)
+
+    def double(self) -> GaussianSet:
+        """Every field in float64."""
+        return self.to(torch.float64)
+
+    # -- batch and Gaussian axes ------------------------------------------------------
+    def __len__(self) -> int:
+        """The number of sets along the first batch axis (``B`` of a ``(B, N)`` set), as
+        for pytorch3d's batched structures; an unbatched set has no length."""
+        if not self.batch_shape:
+            raise TypeError(
+                "len() of an unbatched GaussianSet: it is one set; num_gaussians gives N"
+            )
+        return self.batch_shape[0]
+
+    def __iter__(self) -> Iterator[GaussianSet]:
+        """The sets along the first batch axis (``len(self)`` of them)."""
+        return (self[i] for i in range(len(self)))
+
+    def __getitem__(self, key: Any) -> GaussianSet:
+        """Index the batch axes, then optionally the Gaussian axis N.
+
+        ``gs[b]`` (an int, slice, integer or bool tensor, or a tuple of them over the batch
+        axes) indexes the batch as a tensor of shape ``batch_shape`` would be; one more
+        entry indexes N as :meth:`select` does: ``gs[0, :100]``, ``gs[:, mask]``,
+        ``gs[..., idx]`` (``...`` stands for every batch axis). An int on N would drop
+        the Gaussian axis and raises ``IndexError`` (use ``i:i + 1``).
+        """
+        key = key if isinstance(key, tuple) else (key,)
+        batch_axes = len(self.batch_shape)
+        if any(k is Ellipsis for k in key):
+            if len(key) != 2 or key[0] is not Ellipsis:
+                raise IndexError(
+                    "GaussianSet index: '...' is only allowed as gs[..., n] (every batch "
+                    f"axis, then the Gaussian axis), got {key!r}"
+                )
+            batch_key, n_key = (), key[1]
+        elif len(key) <= batch_axes:
+            batch_key, n_key = key, None
+        elif len(key) == batch_axes + 1:
+            batch_key, n_key = key[:-1], key[-1]
+        else:
+            raise IndexError(
+                f"GaussianSet index: {len(key)} indices for a set of batch shape "
+                f"{tuple(self.batch_shape)} (at most {batch_axes + 1}: the batch axes, then N)"
+            )
+        if isinstance(n_key, int) or (isinstance(n_key, Tensor) and n_key.ndim == 0):
+            raise IndexError(
+                f"GaussianSet index: an int on the Gaussian axis N would drop it; use a slice "
+                f"({n_key}:{n_key} + 1) or a sequence of indices"
+            )
+        out = self if n_key is None else self.select(n_key)
+        if batch_key:
+            out = out.map(lambda _, t: t[batch_key])
+        return out
 
     @float32_under_autocast()
     @typechecked
