@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-from jaxtyping import TypeCheckError
 
 from dego import splat, voxelize
 from tests.helpers import triton
@@ -130,7 +129,7 @@ def test_bad_input_under_autocast_gets_the_eager_errors() -> None:
     bad = inputs.means.detach().clone()
     bad[0, 0, 0] = float("inf")
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        with pytest.raises(TypeCheckError, match="parameter 'world_to_cam'"):
+        with pytest.raises(ValueError, match=r"world_to_cam: expected shape \(B, V, 4, 4\)"):
             splat(gaussians, inputs.world_to_cam[..., :3, :], inputs.intrinsics, (HEIGHT, WIDTH))
         with pytest.raises(ValueError, match="means: 1 of 60 values are not finite"):
             voxelize(gaussians.replace(means=bad), GRID)

@@ -429,7 +429,9 @@ CASES = [
             "alpha": (2, V, H, W),
         },
         bad=(
-            BadInput("shape", "world_to_cam", with_value("world_to_cam", _drop_last)),
+            # camera matrices of the wrong size: one line with what to pass (ValueError, as
+            # the other camera-layout errors)
+            BadInput("shape", "world_to_cam", with_value("world_to_cam", _drop_last), ValueError),
             BadInput("mixed-dtype", "intrinsics", with_value("intrinsics", _other_float)),
             BadInput("nan-means", "gaussians.means", with_nan("gaussians.means"), ValueError),
             BadInput("nan-cameras", "world_to_cam", with_nan("world_to_cam"), ValueError),

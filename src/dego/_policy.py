@@ -165,9 +165,10 @@ def _to_float32(value: Any) -> Any:
 def check_dtype(name: str, tensor: Tensor, expected: torch.dtype, owner: str) -> None:
     """``TypeError`` unless ``tensor`` has the ``expected`` dtype of ``owner``."""
     if tensor.dtype != expected:
+        possessive = f"{owner}'" if owner.endswith("s") else f"{owner}'s"  # the gaussians'
         raise TypeError(
-            f"{name}: dtype {tensor.dtype} differs from {owner}'s {expected}; inputs of one "
-            f"call share one floating dtype (convert with .to({expected}))"
+            f"{name}: dtype {tensor.dtype} differs from {possessive} {expected}; inputs of "
+            f"one call share one floating dtype (convert with .to({expected}))"
         )
 
 

@@ -288,8 +288,29 @@ def test_layout_only_and_default_valued_options_are_accepted() -> None:
 )
 def test_unsupported_options_raise_not_implemented(option: str, value: Any) -> None:
     t = gsplat_inputs((), 1, 8, 3, seed=1, per_camera=False)
-    with pytest.raises(NotImplementedError, match=rf"^{option}="):
+    with pytest.raises(NotImplementedError, match=rf"^{option}=") as caught:
         call(t, **{option: value})
+    assert len(str(caught.value).splitlines()) == 1  # a tensor is described, not printed
+    if isinstance(value, torch.Tensor):
+        assert f"<tensor of shape {list(value.shape)}>" in str(caught.value)
+
+
+def test_value_and_dtype_errors_name_gsplats_arguments() -> None:
+    """Issue 41 (6): a gsplat caller wrote opacities=, colors=, viewmats=: the errors say so."""
+    t = gsplat_inputs((), 1, 8, 3, seed=1, per_camera=False)
+    logits = t["opacities"] * 8 - 4
+    with pytest.raises(
+        ValueError, match=r"^opacities: .*outside \[0, 1\].*torch\.sigmoid"
+    ) as caught:
+        call({**t, "opacities": logits})
+    assert "gaussians." not in str(caught.value) and "from_tensors" not in str(caught.value)
+    other = torch.float32 if t["means"].dtype == torch.float64 else torch.float64
+    with pytest.raises(TypeError, match=rf"^colors: dtype {other} differs from means'"):
+        call({**t, "colors": t["colors"].to(other)})
+    bad = t["viewmats"].clone()
+    bad[..., 3, 2] = 0.5
+    with pytest.raises(ValueError, match=r"^viewmats: "):
+        call({**t, "viewmats": bad})
 
 
 def test_unknown_keyword_lists_the_accepted_names() -> None:

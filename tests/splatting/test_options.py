@@ -320,6 +320,32 @@ def test_cameras_with_a_time_axis_say_flatten() -> None:
         module(gs, world_to_cam=w2c5, intrinsics=k5, image_size=(256, 704))
 
 
+def test_wrong_size_camera_matrices_and_int_image_size_are_one_line_errors() -> None:
+    """Issue 41 (6): in the caller's words, one line, not a type-check dump."""
+    gs, w2c, k = _one_camera()
+    k4 = torch.eye(4, dtype=k.dtype)[None, None]
+    k4[..., :3, :3] = k
+    module = DifferentiableSplatter()
+    for call in (splat, module):
+        cases = [
+            ((gs, w2c, k4, (256, 704)), r"intrinsics: .*\(1, 1, 4, 4\); pass .*\[\.\.\., :3, :3\]"),
+            ((gs, w2c, k4[..., :3, :], (256, 704)), r"intrinsics: .*split_projection"),
+            (
+                (gs, w2c[..., :3, :], k, (256, 704)),
+                r"world_to_cam: .*append the row \[0, 0, 0, 1\]",
+            ),
+            ((gs, w2c, k, 256), r"image_size: expected \(H, W\), two positive ints, got 256"),
+        ]
+        for args, message in cases:
+            with pytest.raises(ValueError, match=message) as caught:
+                call(*args)
+            assert len(str(caught.value).splitlines()) == 1
+    with pytest.raises(ValueError, match="image_size"):
+        splat(gs, w2c, k, image_size=256)
+    # the 3 x 3 part is what the message says to pass, and renders
+    splat(gs, w2c, k4[..., :3, :3], (256, 704))
+
+
 @pytest.mark.parametrize(
     ("keyword", "dego_name"),
     [

@@ -58,7 +58,7 @@ def test_the_gsplat_adapter_rejects_them_too() -> None:
     gs, w2c, k, features, _ = scene()
     colors = features[0].clone()
     colors[3, 1] = math.nan
-    with pytest.raises(ValueError, match="features: 1 of"):
+    with pytest.raises(ValueError, match="colors: 1 of"):
         rasterization(gs.means[0], gs.quats[0], gs.scales[0], gs.opacities[0], colors,
                       w2c[0], k[0], SIZE[1], SIZE[0])  # fmt: skip
 

@@ -245,7 +245,7 @@ def rasterization(
     for name, value in rest.items():
         if name in _UNSUPPORTED:
             if not _is_default(name, value):
-                raise NotImplementedError(f"{name}={value!r}: {_UNSUPPORTED[name][1]}")
+                raise NotImplementedError(f"{name}={_describe(value)}: {_UNSUPPORTED[name][1]}")
         elif name not in _LAYOUT_ONLY:
             named = [p for p in inspect.signature(rasterization).parameters if p != "rest"]
             accepted = sorted({*named, *_UNSUPPORTED, *_LAYOUT_ONLY})
@@ -336,18 +336,21 @@ def rasterization(
         **release_options,
     )
     layout = _MetaLayout(batch, cameras, n, packed)
-    out = pipeline.render(
-        gaussians,
-        viewmats.reshape(flat, cameras, 4, 4),
-        Ks.reshape(flat, cameras, 3, 3),
-        (height, width),
-        features,
-        background,
-        config,
-        layout="channels_last",
-        means2d_hook=layout.means2d_for_compositing,
-        absgrad_sink=layout.receive_absgrad,
-    )
+    try:
+        out = pipeline.render(
+            gaussians,
+            viewmats.reshape(flat, cameras, 4, 4),
+            Ks.reshape(flat, cameras, 3, 3),
+            (height, width),
+            features,
+            background,
+            config,
+            layout="channels_last",
+            means2d_hook=layout.means2d_for_compositing,
+            absgrad_sink=layout.receive_absgrad,
+        )
+    except (ValueError, TypeError) as error:
+        raise type(error)(_in_gsplat_words(str(error))) from None
     # a crop to a size that is not a multiple of the tile leaves a strided view
     render_colors = out.image.contiguous().reshape(*batch, cameras, height, width, -1)
     render_alphas = out.alpha.reshape(*batch, cameras, height, width, 1)
@@ -357,6 +360,42 @@ def rasterization(
     meta |= {"tile_width": tiles_x, "tile_height": tiles_y}
     meta |= {"n_cameras": cameras, "n_batches": flat}
     return render_colors, render_alphas, meta
+
+
+_GSPLAT_NAMES = {
+    "gaussians.means": "means",
+    "gaussians.quats": "quats",
+    "gaussians.scales": "scales",
+    "gaussians.opacities": "opacities",
+    "world_to_cam": "viewmats",
+    "intrinsics": "Ks",
+    "features": "colors",
+    "background": "backgrounds",
+}
+"""The names dego's splatter reports -> the arguments a gsplat caller passed."""
+
+
+def _in_gsplat_words(message: str) -> str:
+    """A splatter error as a caller of gsplat's ``rasterization`` wrote the call: its
+    argument names, and for opacities outside [0, 1] the sigmoid that gsplat expects."""
+    name, colon, rest = message.partition(":")
+    if colon and name in _GSPLAT_NAMES:
+        message = _GSPLAT_NAMES[name] + colon + rest
+    message = message.replace("the gaussians' ", "means' ")
+    if message.startswith("opacities:") and "outside [0, 1]" in message:
+        message = message.split("; ")[0] + (  # dego's own hint names GaussianSet.from_tensors
+            "; rasterization() takes opacities in [0, 1], as gsplat does: pass "
+            "torch.sigmoid(logits) for logits"
+        )
+    return message
+
+
+def _describe(value: object) -> str:
+    """A short description of an argument for an error message (never a whole tensor)."""
+    if isinstance(value, Tensor):
+        return f"<tensor of shape {list(value.shape)}>"
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 class _MetaLayout:

@@ -79,13 +79,19 @@ def check_call(name: str, cameras_at: int, *, options: bool) -> Callable[[F], F]
             cameras = list(args[cameras_at : cameras_at + 2])
             cameras += [kwargs.get(k) for k in ("world_to_cam", "intrinsics")[len(cameras) :]]
             for arg, (label, tail) in zip(
-                cameras, (("world_to_cam", "4, 4"), ("intrinsics", "3, 3")), strict=True
+                cameras, (("world_to_cam", (4, 4)), ("intrinsics", (3, 3))), strict=True
             ):
-                if isinstance(arg, Tensor) and arg.ndim != 4:
+                if not isinstance(arg, Tensor):
+                    continue
+                if arg.ndim != 4 or tuple(arg.shape[-2:]) != tail:
                     raise ValueError(
-                        f"{label}: expected shape (B, V, {tail}), got {tuple(arg.shape)}"
-                        + _camera_advice(label, arg.ndim)
+                        f"{label}: expected shape (B, V, {tail[0]}, {tail[1]}), got "
+                        f"{tuple(arg.shape)}"
+                        + (_camera_advice(label, arg.ndim) or _matrix_advice(label, arg.shape))
                     )
+            size = args[cameras_at + 2] if len(args) > cameras_at + 2 else kwargs.get("image_size")
+            if size is not None:
+                image_size(size)  # one line in the caller's words, before the type checks
             return fn(*args, **kwargs)
 
         return wrapper  # type: ignore[return-value]
@@ -104,6 +110,21 @@ def _camera_advice(label: str, ndim: int) -> str:
         return f"; add the batch axis B, e.g. {label}[None]"
     if ndim == 2:  # one matrix: one batch of one camera
         return f"; add the batch and camera axes B, V, e.g. {label}[None, None]"
+    return ""
+
+
+def _matrix_advice(label: str, shape: torch.Size) -> str:
+    """What to pass instead of a matrix of the wrong size."""
+    rows, cols = tuple(shape[-2:])
+    if label == "intrinsics" and (rows, cols) == (4, 4):
+        return "; pass the 3 x 3 part, intrinsics[..., :3, :3]"
+    if label == "intrinsics" and (rows, cols) == (3, 4):
+        return (
+            "; a 3 x 4 projection matrix holds intrinsics and pose: split it with "
+            "dego.split_projection"
+        )
+    if label == "world_to_cam" and (rows, cols) == (3, 4):
+        return "; append the row [0, 0, 0, 1] to make the 4 x 4 matrix"
     return ""
 
 
