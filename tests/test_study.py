@@ -284,3 +284,37 @@ def test_paired_report_marks_resolved_signs() -> None:
     line = next(x for x in text.splitlines() if x.startswith("| decoupled - static | 10 |"))
     assert "4.00 [4.00, 4.00] *" in line
     assert payload["paired"]["decoupled - static @ 10: articulated t=±1"]["mean"] == 4.0
+
+
+@pytest.mark.parametrize("seeds", [2, 3])
+def test_the_plot_draws_intervals_only_where_the_report_gives_them(seeds: int) -> None:
+    """Issue 41 (5): with 2 seeds (``--quick``) the report prints n/a; the plot then draws
+    no error bars and its title says why, instead of "95% CI" over zero-width bars."""
+    pytest.importorskip("matplotlib")
+    from dego.study import MASK_METRICS, study_figure
+
+    runs = [
+        StudyRun(
+            seed,
+            300,
+            variant,
+            dict.fromkeys(METRICS, 0.0) | {"articulated t=±1": 10.0 + seed * (1 + k)},
+            dict.fromkeys(MASK_METRICS, 0.5),
+            0.0,
+            1.0,
+        )
+        for seed in range(seeds)
+        for k, variant in enumerate(("static", "rigid", "decoupled"))
+    ]
+    from matplotlib.container import BarContainer
+
+    left, right = study_figure(runs).axes
+    bars = [c for axis in (left, right) for c in axis.containers if isinstance(c, BarContainer)]
+    error_bars = [c.errorbar for c in bars]
+    assert len(bars) == 3 + 2  # the variants, then the gains of rigid and decoupled
+    title = right.get_title()
+    if seeds < 3:
+        assert all(bar is None for bar in error_bars)
+        assert "95% CI" not in title and "2 seed(s), no interval (needs 3+)" in title
+    else:
+        assert all(bar is not None for bar in error_bars) and "95% CI" in title

@@ -506,8 +506,11 @@ def study_figure(runs: Sequence[StudyRun]) -> Any:
     budgets = list(summary)
     variants = [v for v in STUDY_VARIANTS if any(r.variant == v for r in runs)]
 
-    def bars(axis, intervals_of, names) -> None:
+    def bars(axis, intervals_of, names) -> bool:
+        """Draw the bars; an error bar only where the report gives an interval (at least
+        MIN_INTERVAL_SEEDS seeds). Returns whether any was drawn."""
         width = 0.8 / max(len(names), 1)
+        drawn = False
         for k, variant in enumerate(names):
             intervals = [intervals_of(b, variant) for b in budgets]
             xs = [i + (k - (len(names) - 1) / 2) * width for i in range(len(budgets))]
@@ -520,24 +523,34 @@ def study_figure(runs: Sequence[StudyRun]) -> Any:
                 xs,
                 [iv.mean for iv in intervals],
                 width,
-                yerr=errors,
-                capsize=3,
+                yerr=errors if any(shown) else None,
+                capsize=3 if any(shown) else 0,
                 label=row_name(variant),
                 color=f"C{STUDY_VARIANTS.index(variant) % 10}",  # one colour per variant
             )
+            drawn |= any(shown)
         axis.set_xticks(range(len(budgets)), [f"{b} G" for b in budgets])
+        return drawn
 
-    bars(left, lambda b, v: summary[b][v][HEADLINE], variants)
+    with_intervals = bars(left, lambda b, v: summary[b][v][HEADLINE], variants)
     left.set_ylabel(f"articulated IoU, {OFFSET_GROUPS[0]} (%)")
     left.legend(fontsize=6)
     gains = [v for v in PICTURED_GAINS if v in variants] if "static" in variants else []
     paired = {v: paired_differences(runs, HEADLINE, v, "static") for v in gains}
-    bars(right, lambda b, v: paired[v][b], gains)
+    with_intervals |= bars(right, lambda b, v: paired[v][b], gains)
     right.axhline(0, color="grey", linewidth=0.8)
     right.set_ylabel("gain over static (points)")
     if gains:
         right.legend(fontsize=6)
-    right.set_title(f"{HEADLINE}, paired by seed, 95% CI", fontsize=9)
+    seeds = len({r.seed for r in runs})
+    if with_intervals:
+        right.set_title(f"{HEADLINE}, paired by seed, 95% CI", fontsize=9)
+    else:  # as the report: no interval below MIN_INTERVAL_SEEDS seeds, so none is drawn
+        right.set_title(
+            f"{HEADLINE}, paired by seed; means of {seeds} seed(s), no interval "
+            f"(needs {MIN_INTERVAL_SEEDS}+)",
+            fontsize=9,
+        )
     return figure
 
 
