@@ -243,6 +243,15 @@ class _DegoCountsMetric(Metric):
         with self.sync_context(dist_sync_fn=self.dist_sync_fn):
             return fn()
 
+    def plot(
+        self, val: Tensor | Sequence[Tensor] | dict[str, Tensor] | None = None, ax: Any = None
+    ) -> Any:
+        """torchmetrics' plot of the chosen ``value``: ``val`` one value (a scalar tensor or
+        a dict of them, as :meth:`compute` returns) or a sequence of them (one per epoch,
+        drawn as a curve); ``None`` plots :meth:`compute` now. Returns ``(figure, axes)``
+        (needs matplotlib)."""
+        return self._plot(val, ax)
+
     def extra_repr(self) -> str:
         shown = {k: self._dego_config[k] for k in self._REPR_KEYS}
         return ", ".join([f"value={self.value!r}", *(f"{k}={v!r}" for k, v in shown.items())])

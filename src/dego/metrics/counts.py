@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import warnings
@@ -159,6 +160,17 @@ class CountingMetric(nn.Module):
             mine += theirs.to(mine.device)
         self._changed()
         return self
+
+    def forward(self, *args: Any, **kwargs: Any) -> Any:
+        """As torchmetrics' ``forward``: add the batch to the counts (``update``'s
+        arguments) and return the batch's own value (``compute`` over that batch alone).
+        ``metric(pred, gt, mask)`` in a loop therefore gives per-batch reports while the
+        metric accumulates the whole run for ``compute()``."""
+        batch: Any = copy.deepcopy(self)  # each subclass has its own update / compute
+        batch.reset()
+        batch.update(*args, **kwargs)
+        self.merge(batch)
+        return batch.compute()
 
     def reset(self) -> None:
         """Zero the counts."""
