@@ -18,10 +18,13 @@ Counts are int64, so the numbers do not depend on how the samples were shared.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -519,6 +522,46 @@ def _exit_message(error: Any) -> str:
     )
 
 
+def _unguarded_main_line() -> tuple[str, int] | None:
+    """``(file, line)`` of the running top-level statement of the ``__main__`` script when
+    spawned processes would run it again (it is not under ``if __name__ == "__main__":``),
+    else ``None``. Mirrors ``multiprocessing``'s spawn: a package's ``__main__`` (``python
+    -m pkg``), an interactive session or a notebook is not re-run."""
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    path = getattr(main, "__file__", None)
+    if main is None or path is None or (spec is not None and spec.name.endswith("__main__")):
+        return None
+    frame = inspect.currentframe()
+    while frame is not None and not (
+        frame.f_code.co_name == "<module>" and frame.f_globals.get("__name__") == "__main__"
+    ):
+        frame = frame.f_back
+    if frame is None:
+        return None
+    line = frame.f_lineno
+    try:
+        tree = ast.parse(Path(path).read_text(), filename=str(path))
+    except (OSError, SyntaxError, ValueError):
+        return None
+    for node in tree.body:
+        if isinstance(node, ast.If) and _is_main_test(node.test):
+            end = node.end_lineno or node.lineno
+            if node.lineno <= line <= end:
+                return None
+    return str(path), line
+
+
+def _is_main_test(test: ast.expr) -> bool:
+    """Whether ``test`` is ``__name__ == "__main__"`` (either way round)."""
+    if not (isinstance(test, ast.Compare) and len(test.ops) == 1):
+        return False
+    sides = [test.left, test.comparators[0]]
+    names = [s.id for s in sides if isinstance(s, ast.Name)]
+    values = [s.value for s in sides if isinstance(s, ast.Constant)]
+    return isinstance(test.ops[0], ast.Eq) and names == ["__name__"] and values == ["__main__"]
+
+
 def _run_workers(
     plan: Plan, workers: int, progress: Progress, *, target: Callable[..., None] | None = None
 ) -> dict[str, Any]:
@@ -675,10 +718,20 @@ def evaluate(
         ``report.failed`` and the others are scored.
 
     Raises:
+        RuntimeError: ``workers > 1`` called at the top level of a script without
+            ``if __name__ == "__main__":`` (its spawned workers would run it again).
         EvaluationSetupError: (a ``ValueError``) no samples, missing predictions or
             origins, an infos token without ground truth, bad options.
     """
     workers = check_int("workers", workers, 1)
+    unguarded = _unguarded_main_line() if workers > 1 else None
+    if unguarded is not None:
+        raise RuntimeError(
+            f"workers={workers}: {unguarded[0]}, line {unguarded[1]}, calls dego.evaluate at "
+            'its top level without `if __name__ == "__main__":`, and each worker process '
+            "(started with spawn) imports that file and would run it again; put the call "
+            "under that guard, or pass workers=1"
+        )
     start = time.perf_counter()
     plan, origins_fn = prepare(
         gt,
