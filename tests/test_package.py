@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from importlib import resources
@@ -35,6 +36,15 @@ def test_typed_marker_is_shipped() -> None:
             "speed-up",
         ),
         ("bench_feedforward.py", ["--repeats", "1"], "splatting and losses"),
+        ("bench_threads.py", ["--load", "1", "--repeats", "1"], "--threads 1"),
+        pytest.param(
+            "bench_rerun.py",
+            ["--samples", "2", "--eval-repeats", "1", "--repeats", "1"],
+            "added",
+            marks=pytest.mark.skipif(
+                importlib.util.find_spec("rerun") is None, reason="needs the rerun extra"
+            ),
+        ),
     ],
 )
 def test_benchmark_script_runs_on_a_small_case(

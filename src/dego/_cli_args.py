@@ -64,14 +64,16 @@ def clock(seconds: float) -> str:
 
 
 def add_device(parser: argparse.ArgumentParser) -> None:
-    """The ``--device`` flag of ``dego demo``, ``dego study`` and ``dego train``: checked
-    while parsing, so a device that is not usable here is the subcommand's usage error."""
+    """The ``--device`` and ``--threads`` flags of ``dego demo``, ``dego study`` and
+    ``dego train``: checked while parsing, so a device that is not usable here is the
+    subcommand's usage error."""
     parser.add_argument(
         "--device",
         type=eval_command.parse_device,
         default="cpu",
         help="torch device: cpu, cuda or cuda:N (cpu)",
     )
+    eval_command.add_threads_argument(parser)
 
 
 def repeated_values(values: tuple) -> list:

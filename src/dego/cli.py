@@ -363,6 +363,8 @@ def _dispatch(argv: list[str] | None, created: list[Path]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     command_parser: argparse.ArgumentParser = args.command_parser
+    if args.command != "eval":  # dego eval applies its own (dego.evaluation.command.run)
+        eval_command.apply_threads(getattr(args, "threads", None))
     try:
         if args.command == "study":
             return study_main(args, command_parser, created)

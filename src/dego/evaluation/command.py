@@ -121,6 +121,32 @@ def bounded_int(low: int, high: int) -> Callable[[str], int]:
     return parse
 
 
+MAX_THREADS = 256
+"""The most threads ``--threads`` allows."""
+
+THREADS_HELP = (
+    "CPU threads per process (torch.set_num_threads; default: torch's, one per core). "
+    "On a shared or busy machine 1 is often much faster: torch's threads otherwise wait "
+    "for each other (docs/performance.md, Threads)"
+)
+
+
+def add_threads_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--threads N`` flag of every ``dego`` command that computes."""
+    parser.add_argument(
+        "--threads", type=bounded_int(1, MAX_THREADS), metavar="N", help=THREADS_HELP
+    )
+
+
+def apply_threads(threads: int | None) -> None:
+    """``--threads N``: N threads in this process, and ``OMP_NUM_THREADS=N`` for the
+    processes it starts (``--workers``, subprocesses); ``None`` leaves torch's default."""
+    if threads is None:
+        return
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
+
+
 class _NotTheNuScenesVersion(argparse.Action):
     """``dego eval --version``: a usage error that points at the two meanings it could have."""
 
@@ -188,6 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--json", type=Path, help="write a JSON report (percent, unrounded) here")
     parser.add_argument("--markdown", type=Path, help="write a Markdown report (percent) here")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    add_threads_argument(parser)
     return parser
 
 
@@ -235,6 +262,7 @@ def _check_reports(args: argparse.Namespace, created: list[Path]) -> str | None:
 
 
 def _run(args: argparse.Namespace, created: list[Path]) -> int:
+    apply_threads(args.threads)
     is_rank0 = os.environ.get("RANK", "0") == "0"
     problem = _check_reports(args, created)
     if problem is not None:
@@ -293,8 +321,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 __all__ = [
+    "MAX_THREADS",
     "MAX_WORKERS",
     "add_arguments",
+    "add_threads_argument",
+    "apply_threads",
     "build_parser",
     "main",
     "parse_classes",

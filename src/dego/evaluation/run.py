@@ -484,7 +484,8 @@ def _worker(
     Ctrl-C (SIGINT to the whole process group) is the parent's to handle: it stops the
     workers, which print nothing."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    torch.set_num_threads(max(1, _cpus() // world_size))
+    if "OMP_NUM_THREADS" not in os.environ:  # dego eval --threads N sets it for the workers
+        torch.set_num_threads(max(1, _cpus() // world_size))
     dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=world_size)
     try:
         on_sample = (lambda: events.put(("tick", rank))) if report_progress else None
