@@ -237,17 +237,20 @@ def test_plot_bev_greys_the_columns_outside_the_mask_and_outlines_the_rest(
     centre_row, centre_col = axes_centre(ax, rgb.shape[0])
     quarter = int(ax.get_window_extent().height / 4)
     front = rgb[int(centre_row) - quarter, int(centre_col)]  # x > 0: scored, the car colour
-    back = rgb[int(centre_row) + quarter, int(centre_col)]  # x < 0: veiled
+    row, col = int(centre_row) + quarter, int(centre_col)
+    back = rgb[row - 6 : row + 7, col - 6 : col + 7].reshape(-1, 3)  # x < 0: veiled, hatched
     assert tuple(front) == PALETTE[CAR]
     alpha = dego.viz.UNSCORED_RGBA[3]
     veiled = (1 - alpha) * np.array(PALETTE[CAR]) + alpha * 255 * np.array(
         dego.viz.UNSCORED_RGBA[:3]
     )
-    assert np.abs(back - veiled).max() <= 2
-    assert len(ax.collections) == 1  # the outline of the scored region
+    grey = np.abs(back - veiled).max(axis=1) <= 2
+    assert grey.mean() > 0.4  # mostly the veil's grey ...
+    assert (back[~grey].sum(axis=1) < veiled.sum() - 60).any()  # ... crossed by dark hatching
+    assert len(ax.collections) == 2  # the hatching and the outline of the scored region
     # a 2D map gives the same veil; all scored: no veil, no outline
     again = plot_bev(labels, grid=GRID, mask=mask.any(-1).numpy())
-    assert len(again.collections) == 1
+    assert len(again.collections) == 2
     full = plot_bev(labels, grid=GRID, mask=torch.ones(GRID.shape, dtype=torch.bool))
     assert len(full.collections) == 0
     with pytest.raises(TypeCheckError, match="mask"):  # not the labels' columns
@@ -263,7 +266,8 @@ def test_compare_bev_with_a_mask_names_the_grey_in_its_legend(mpl: object) -> No
     fig = compare_bev(labels, labels, grid=GRID, mask=mask)
     names = [t.get_text() for t in fig.legends[0].get_texts()]
     assert names[-1] == "not scored"
-    assert all(len(ax.collections) == 1 for ax in fig.axes)
+    assert fig.legends[0].get_patches()[-1].get_hatch() == dego.viz.UNSCORED_HATCH
+    assert all(len(ax.collections) == 2 for ax in fig.axes)  # hatching, outline
     plain = compare_bev(labels, labels, grid=GRID)
     assert "not scored" not in [t.get_text() for t in plain.legends[0].get_texts()]
 

@@ -51,6 +51,16 @@ RGB = tuple[int, int, int]
 WHITE: RGB = (255, 255, 255)
 UNSCORED_RGBA = (0.45, 0.45, 0.45, 0.55)
 """The grey veil :func:`plot_bev` lays over columns outside its ``mask`` (RGBA, 0-1)."""
+UNSCORED_HATCH = "////"
+"""The hatch drawn over that veil, so that "not scored" is not read as ``other_flat``'s grey."""
+
+
+def matplotlib_rc(settings: dict[str, Any]) -> Any:
+    """``matplotlib.rc_context(settings)`` (matplotlib imported on use)."""
+    import matplotlib
+
+    return matplotlib.rc_context(settings)
+
 
 _INSTALL_HINT = (
     'dego.viz needs matplotlib, an optional dependency: pip install "dego-occupancy[viz]" '
@@ -282,7 +292,13 @@ def add_class_legend(
     ]
     if unscored:
         handles.append(
-            Patch(facecolor=UNSCORED_RGBA, edgecolor="black", linewidth=0.8, label="not scored")
+            Patch(
+                facecolor=UNSCORED_RGBA,
+                edgecolor="black",
+                linewidth=0.8,
+                hatch=UNSCORED_HATCH,
+                label="not scored",
+            )
         )
     if isinstance(target, FigureBase):
         engine = target.get_layout_engine()
@@ -381,10 +397,19 @@ def _veil_unscored(ax: Axes, scored: np.ndarray, extent: tuple[float, float, flo
     veil = np.zeros((*shown.shape, 4))
     veil[~shown] = UNSCORED_RGBA
     ax.imshow(veil, extent=extent, origin="upper", interpolation="nearest")
-    if shown.any() and not shown.all():
-        (y_hi, y_lo, x_lo, x_hi) = extent
-        rows, cols = shown.shape
-        # cell centres, in the same orientation as the image
+    if shown.all():
+        return
+    (y_hi, y_lo, x_lo, x_hi) = extent
+    rows, cols = shown.shape
+    # cell edges and centres, in the same orientation as the image
+    x_edges, y_edges = np.linspace(x_hi, x_lo, rows + 1), np.linspace(y_hi, y_lo, cols + 1)
+    # hatched as well as greyed: a grey alone reads like other_flat's grey
+    with matplotlib_rc({"hatch.linewidth": 0.5, "hatch.color": "black"}):
+        ax.pcolor(
+            y_edges, x_edges, np.ma.masked_where(shown, ~shown), hatch=UNSCORED_HATCH,
+            facecolor="none", edgecolor="none", linewidth=0,
+        )  # fmt: skip
+    if shown.any():
         xs = np.linspace(x_hi, x_lo, rows, endpoint=False) - (x_hi - x_lo) / rows / 2
         ys = np.linspace(y_hi, y_lo, cols, endpoint=False) - (y_hi - y_lo) / cols / 2
         ax.contour(ys, xs, shown.astype(float), levels=[0.5], colors="black", linewidths=0.8)
