@@ -55,13 +55,6 @@ UNSCORED_HATCH = "////"
 """The hatch drawn over that veil, so that "not scored" is not read as ``other_flat``'s grey."""
 
 
-def matplotlib_rc(settings: dict[str, Any]) -> Any:
-    """``matplotlib.rc_context(settings)`` (matplotlib imported on use)."""
-    import matplotlib
-
-    return matplotlib.rc_context(settings)
-
-
 _INSTALL_HINT = (
     'dego.viz needs matplotlib, an optional dependency: pip install "dego-occupancy[viz]" '
     '(or pip install "matplotlib>=3.7")'
@@ -404,7 +397,9 @@ def _veil_unscored(ax: Axes, scored: np.ndarray, extent: tuple[float, float, flo
     # cell edges and centres, in the same orientation as the image
     x_edges, y_edges = np.linspace(x_hi, x_lo, rows + 1), np.linspace(y_hi, y_lo, cols + 1)
     # hatched as well as greyed: a grey alone reads like other_flat's grey
-    with matplotlib_rc({"hatch.linewidth": 0.5, "hatch.color": "black"}):
+    import matplotlib
+
+    with matplotlib.rc_context({"hatch.linewidth": 0.5, "hatch.color": "black"}):
         ax.pcolor(
             y_edges, x_edges, np.ma.masked_where(shown, ~shown), hatch=UNSCORED_HATCH,
             facecolor="none", edgecolor="none", linewidth=0,
