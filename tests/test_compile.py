@@ -126,10 +126,20 @@ def test_a_wrong_shape_under_compile_names_the_argument() -> None:
         return splat(gaussians, w2c, inputs.intrinsics, (HEIGHT, WIDTH)).alpha
 
     compiled = torch.compile(render, backend="eager")
-    with pytest.raises(TypeCheckError, match="parameter 'world_to_cam'"):
+    # a 3 x 4 world_to_cam: the one-line camera-layout error, compiled as eager
+    message = r"world_to_cam: expected shape \(B, V, 4, 4\), got \(1, 2, 3, 4\)"
+    with pytest.raises(ValueError, match=message):
         compiled(inputs.world_to_cam[..., :3, :])
-    with pytest.raises(TypeCheckError, match="parameter 'world_to_cam'"):
+    with pytest.raises(ValueError, match=message):
         render(inputs.world_to_cam[..., :3, :])
+    # a type-check error (features without their channel axis) names its parameter too
+    features = torch.zeros(1, inputs.means.shape[1])
+
+    def render_features(w2c: Tensor) -> Tensor:
+        return splat(gaussians, w2c, inputs.intrinsics, (HEIGHT, WIDTH), features=features).alpha
+
+    with pytest.raises(TypeCheckError, match="parameter 'features'"):
+        torch.compile(render_features, backend="eager")(inputs.world_to_cam)
 
 
 @pytest.mark.slow

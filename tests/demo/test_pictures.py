@@ -37,7 +37,7 @@ def test_bev_figure_greys_the_unscored_columns_and_titles_the_frames_score(clip:
     assert [t.get_text() for t in figure.legends[0].get_texts()][-1] == "not scored"
     scored = clip.mask_camera[index].any(-1)
     if not bool(scored.all()):  # the synthetic cameras leave some columns unseen
-        assert all(len(ax.collections) == 1 for ax in (prediction, truth))  # the outline
+        assert all(len(ax.collections) == 2 for ax in (prediction, truth))  # hatch, outline
 
 
 def test_camera_figure_names_the_camera_and_the_frame(clip: DemoClip) -> None:

@@ -243,8 +243,15 @@ class _DegoCountsMetric(Metric):
         with self.sync_context(dist_sync_fn=self.dist_sync_fn):
             return fn()
 
+    @typechecked
     def plot(
-        self, val: Tensor | Sequence[Tensor] | dict[str, Tensor] | None = None, ax: Any = None
+        self,
+        val: Tensor
+        | dict[str, Tensor]
+        | Sequence[Tensor]
+        | Sequence[dict[str, Tensor]]
+        | None = None,
+        ax: Any = None,
     ) -> Any:
         """torchmetrics' plot of the chosen ``value``: ``val`` one value (a scalar tensor or
         a dict of them, as :meth:`compute` returns) or a sequence of them (one per epoch,
