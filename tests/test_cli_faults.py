@@ -19,7 +19,7 @@ import torch
 
 import dego.cli
 from dego.cli import main
-from tests.helpers.cli_faults import FullDisk
+from tests.helpers.cli_faults import FullDisk, usage_error
 from tests.helpers.repo import ROOT, needs_source_tree
 
 
@@ -32,20 +32,6 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
 
     monkeypatch.setattr(dego.cli, "run_demo", started)
     monkeypatch.setattr(dego.cli, "run_study", started)
-
-
-def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
-    """The error line of an argparse usage error (rc 2) of ``dego argv``: the usage line
-    and the error come from the subcommand's parser (``dego demo: error: ...``)."""
-    with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    assert exit_info.value.code == 2
-    out, err = capsys.readouterr()
-    assert out == "" and "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert lines[0].startswith(f"usage: dego {argv[0]} ")
-    assert lines[-1].startswith(f"dego {argv[0]}: error: ")
-    return lines[-1]
 
 
 # -- bad flags are usage errors before any work -------------------------------------------

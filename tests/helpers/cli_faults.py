@@ -1,6 +1,8 @@
 """Helpers of tests/test_cli_faults.py, also used by
 
 - tests/evaluation/test_evaluation.py
+- tests/viz/test_rerun_commands.py
+- tests/test_cli_threads.py
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import os
 from pathlib import Path
 
 import pytest
+
+from dego.cli import main
 
 
 class FullDisk:
@@ -50,3 +54,17 @@ class _Filling:
 
     def __exit__(self, *exc: object) -> None:
         self._handle.close()
+
+
+def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    """The error line of an argparse usage error (rc 2) of ``dego argv``: the usage line
+    and the error come from the subcommand's parser (``dego demo: error: ...``)."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert lines[0].startswith(f"usage: dego {argv[0]} ")
+    assert lines[-1].startswith(f"dego {argv[0]}: error: ")
+    return lines[-1]

@@ -13,18 +13,12 @@ import torch
 import dego.cli
 from dego import NUM_CLASSES
 from dego.cli import main
+from tests.helpers.cli_faults import usage_error
 from tests.helpers.evaluation import TOKENS, make_tree
 from tests.helpers.rrd import column, read_recording
 
 rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="reading recordings back needs rerun-sdk[catalog]")
-
-
-def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
-    with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    assert exit_info.value.code == 2
-    return capsys.readouterr().err.strip().splitlines()[-1]
 
 
 @pytest.fixture

@@ -307,3 +307,21 @@ def test_without_recording_argument_logs_into_reruns_global_recording(tmp_path: 
     assert data["frame"] == [3]
     assert len(column(data, "world/gaussians", "Ellipsoids3D:centers")[0]) == 7
     assert column(data, "world/occ", "class_id")[0] is not None
+
+
+def test_a_rerun_without_the_unstable_archetypes_falls_back_or_refuses(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The version gate (rerun-sdk before VoxelGridMap / GaussianSplats3D, e.g. 0.24)."""
+    monkeypatch.delattr(rr, "VoxelGridMap")
+    monkeypatch.delattr(rr, "GaussianSplats3D")
+    path = tmp_path / "old.rrd"
+    with dr.recording_file(path) as rec:
+        dr.log_occupancy("world/occ", small_labels(), SMALL, frame=0, recording=rec)  # boxes
+        with pytest.raises(
+            RuntimeError, match=r"style: 'voxels' needs rerun's VoxelGridMap.*'boxes'"
+        ):
+            dr.log_occupancy("world/occ", small_labels(), SMALL, style="voxels", recording=rec)
+        with pytest.raises(RuntimeError, match=r"style: 'splats' needs .*'ellipsoids'"):
+            dr.log_gaussians("world/g", gaussians(), style="splats", recording=rec)
+    assert any(name.startswith("/world/occ:Boxes3D") for name in read_recording(path))

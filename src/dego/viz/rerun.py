@@ -104,6 +104,18 @@ def has_gaussian_splats() -> bool:
     return hasattr(require_rerun(), "GaussianSplats3D")
 
 
+def _archetype(name: str, style: str, instead: str) -> Any:
+    """rerun's archetype class ``name`` for ``style=``, or ``RuntimeError`` saying what to
+    use instead where the installed rerun does not have it."""
+    rr = require_rerun()
+    if not hasattr(rr, name):
+        raise RuntimeError(
+            f"style: {style!r} needs rerun's {name}, which rerun-sdk {rr.__version__} does "
+            f"not have; use style={instead!r} or upgrade rerun-sdk"
+        )
+    return getattr(rr, name)
+
+
 # --------------------------------------------------------------------------- recordings
 
 
@@ -163,11 +175,17 @@ def _set_time(stream: Any, frame: int | None, timeline: str) -> None:
         stream.set_time(timeline, sequence=frame)
 
 
-def _log(stream: Any, entity: str, *parts: Any, static: bool = False) -> None:
+def _log(stream: Any, entity: str, *parts: Any) -> None:
+    """Log data ``parts`` at ``entity``, which must name an entity below the root."""
     if not isinstance(entity, str) or not entity.strip("/"):
         raise ValueError(
             f"entity: expected an entity path such as 'world/occupancy', got {entity!r}"
         )
+    _emit(stream, entity, *parts)
+
+
+def _emit(stream: Any, entity: str, *parts: Any, static: bool = False) -> None:
+    """``stream.log``, or rerun's module-level ``rr.log`` for the global recording."""
     if stream is None:
         require_rerun().log(entity, *parts, static=static)
     else:
@@ -186,11 +204,7 @@ def log_classes(entity: str = "/", *, recording: RecordingStream | None = None) 
             for i, name in enumerate(CLASS_NAMES)
         ]
     )
-    stream = _stream(recording)
-    if stream is None:
-        rr.log(entity, context, static=True)
-    else:
-        stream.log(entity, context, static=True)
+    _emit(_stream(recording), entity, context, static=True)
 
 
 # --------------------------------------------------------------------------- grids
@@ -257,12 +271,8 @@ def log_occupancy(
     if style == "auto":
         style = "voxels" if has_voxel_grid_map() else "boxes"
     if style == "voxels":
-        if not has_voxel_grid_map():
-            raise RuntimeError(
-                f"style: 'voxels' needs rerun's VoxelGridMap, which rerun-sdk "
-                f"{rr.__version__} does not have; use style='boxes' or upgrade rerun-sdk"
-            )
-        archetype = rr.VoxelGridMap(ijk, voxel_size=size, colors=colors, translation=lower)
+        voxel_grid_map = _archetype("VoxelGridMap", style, "boxes")
+        archetype = voxel_grid_map(ijk, voxel_size=size, colors=colors, translation=lower)
     else:
         centers = lower + (ijk.astype(np.float32) + 0.5) * size
         if style == "boxes":
@@ -390,12 +400,8 @@ def log_gaussians(
         [rgb[keep], np.round(opacities[keep] * 255).astype(np.uint8)[:, None]], axis=-1
     )
     if style == "splats":
-        if not has_gaussian_splats():
-            raise RuntimeError(
-                f"style: 'splats' needs rerun's GaussianSplats3D, which rerun-sdk "
-                f"{rr.__version__} does not have; use style='ellipsoids' or upgrade rerun-sdk"
-            )
-        archetype = rr.GaussianSplats3D(centers, scales=scales, quaternions=quats, colors=rgba)
+        splats = _archetype("GaussianSplats3D", style, "ellipsoids")
+        archetype = splats(centers, scales=scales, quaternions=quats, colors=rgba)
     else:
         archetype = rr.Ellipsoids3D(
             centers=centers,
