@@ -378,11 +378,13 @@ def main() -> None:
             if args.out is not None:
                 args.out.mkdir(parents=True, exist_ok=True)
                 torch.save(model.state_dict(), args.out / "model.pt")
-                scores = {  # percent (2 decimals), like the tables above
-                    **occupancy_report.as_dict(percent=True),
-                    **rayiou_report.as_dict(percent=True),
+                # fractions under dego's score keys, as loggers record them (the tables
+                # above show percent)
+                scores = {**occupancy_report.as_dict(), **rayiou_report.as_dict()}
+                metrics = {
+                    "units": "fraction",
+                    **{k: _finite_or_none(v) for k, v in scores.items()},
                 }
-                metrics = {k: _finite_or_none(v) for k, v in scores.items()}
                 (args.out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
                 print(f"\nwrote {args.out / 'model.pt'} and {args.out / 'metrics.json'}")
     finally:

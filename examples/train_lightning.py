@@ -29,9 +29,9 @@ of its six cameras) per step.
   end of the epoch. ``trainer.validate`` runs before and after the fit.
 
 With ``--out DIR`` the script writes ``DIR/summary.json`` (settings, per-step losses,
-initial and final metrics and what Lightning logged, all in percent like every dego
-report, wall times) and Lightning's CSV log
-(``DIR/lightning/version_0/metrics.csv``).
+initial and final metrics and what Lightning logged, all fractions under dego's score keys
+like the CSV log, wall times) and Lightning's CSV log
+(``DIR/lightning/version_0/metrics.csv``); stdout shows percent.
 
 A few steps barely move the scores (the demo fits for hundreds of iterations): this shows
 the plumbing, not a good fit. Most of a run is compilation. ``time python
@@ -180,13 +180,10 @@ class LitSceneFit(L.LightningModule):
         occupancy, rayiou = self.occupancy.report(), self.rayiou.report()
         self.reports.append(
             {
-                "iou": 100 * occupancy.iou,
-                "miou": 100 * occupancy.miou,
-                **{
-                    f"rayiou@{t:g}": 100 * v
-                    for t, v in zip(rayiou.thresholds, rayiou.at, strict=True)
-                },
-                "rayiou": 100 * rayiou.rayiou,
+                "iou": occupancy.iou,
+                "miou": occupancy.miou,
+                **{f"rayiou@{t:g}": v for t, v in zip(rayiou.thresholds, rayiou.at, strict=True)},
+                "rayiou": rayiou.rayiou,
             }
         )
 
@@ -309,9 +306,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "autocast": sorted(module.autocast_dtypes),
         "initial": {k: _finite_or_none(v) for k, v in initial.items()},
         "final": {k: _finite_or_none(v) for k, v in final.items()},
-        # Lightning logs the torchmetrics values, fractions; in percent like the rest
-        "units": "percent",
-        "logged": {k: 100 * float(v) for k, v in logged.items()},
+        # a key holds one unit everywhere: fractions, as torchmetrics and the CSV log have them
+        "units": "fraction",
+        "logged": {k: float(v) for k, v in logged.items()},
         "seconds": {
             "clip": clip_seconds,
             "fit": fit_seconds,
@@ -328,8 +325,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     for name in ("initial", "final"):
         scores = summary[name]
         print(
-            f"{name:>7}: IoU {scores['iou']:.2f}  mIoU {scores['miou']:.2f} (weak)  "
-            f"RayIoU {scores['rayiou']:.2f} (percent)"
+            f"{name:>7}: IoU {100 * scores['iou']:.2f}  mIoU {100 * scores['miou']:.2f} (weak)  "
+            f"RayIoU {100 * scores['rayiou']:.2f} (percent)"
         )
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)

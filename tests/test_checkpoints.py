@@ -332,12 +332,15 @@ def test_only_dego_classes_are_allowlisted() -> None:
     pairs = [e for e in allowed if isinstance(e, tuple) and e[1].startswith("dego.")]
     ours = [e for e in allowed if getattr(e, "__module__", "").startswith("dego")]
     assert not ours  # no class itself, no function
-    targets = {stand_in.target for stand_in, _ in pairs}
+    targets = {stand_in.target() for stand_in, _ in pairs}
     assert targets == set(_safe_globals.safe_types())
     assert all(dataclasses.is_dataclass(target) for target in targets)
     for stand_in, name in pairs:
         assert issubclass(stand_in, _safe_globals._Unbuilt)
-        assert name.rsplit(".", 1)[1] == stand_in.target.__qualname__
+        assert name.rsplit(".", 1)[1] == stand_in.target().__qualname__
+    # Named where they are defined: the name each class pickles under.
+    pickled = {f"{cls.__module__}.{cls.__qualname__}" for cls in _safe_globals.safe_types()}
+    assert pickled == set(_safe_globals._SAFE_NAMES)
 
 
 def _with_pickle(payload: bytes) -> io.BytesIO:

@@ -66,7 +66,10 @@ def test_every_op_in_one_compiled_step_equals_eager(
     # compile with the same backend here; inductor's code for them is tested below.
     monkeypatch.setattr(composite, "COMPILED_KERNELS", "eager")
     compiled = torch.compile(training_step, backend="aot_eager" if backend == "triton" else "eager")
-    for seed in (0, 1):  # the second call used to fail with a false jaxtyping error
+    # the second call used to fail with a false jaxtyping error (whatever the backend: the
+    # interpreted Triton case, the slowest, makes the first call only)
+    seeds = (0,) if (device, backend) == ("cpu", "triton") else (0, 1)
+    for seed in seeds:
         results = []
         for step in (training_step, compiled):
             inputs = make_inputs(seed, device=device, backend=backend)

@@ -84,5 +84,6 @@ def test_example_runs(name: str, tmp_path: Path) -> None:
         assert out.count("protocol: weak") == 1
         assert "mIoU" in out and "RayIoU" in out
         metrics = json.loads((tmp_path / "metrics.json").read_text())
-        assert {"miou", "iou", "rayiou"} <= metrics.keys()
+        assert {"miou", "iou", "rayiou"} <= metrics.keys() and metrics["units"] == "fraction"
+        assert all(0 <= metrics[k] <= 1 for k in ("miou", "iou", "rayiou"))
         assert (tmp_path / "model.pt").is_file()

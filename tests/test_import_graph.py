@@ -9,7 +9,7 @@ runs implicitly (``dego`` for ``import dego.x``) are not added: they are not imp
 statements of the module, and every module would otherwise sit in a cycle with ``dego``.
 
 Layers (docs: DESIGN.md section 1, "Layering"): the *outer* modules ``dego.__main__``,
-``dego.cli``, ``dego.compat.*``, ``dego.demo.*``, ``dego.study`` and ``dego.viz`` may import
+``dego._entry`` (the console script), ``dego.cli``, ``dego.compat.*``, ``dego.demo.*``, ``dego.study`` and ``dego.viz`` may import
 the core and each other; the *core* (everything else) never imports an outer module.
 """
 
@@ -23,7 +23,15 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
-OUTER = ("dego.__main__", "dego.cli", "dego.compat", "dego.demo", "dego.study", "dego.viz")
+OUTER = (
+    "dego.__main__",
+    "dego._entry",
+    "dego.cli",
+    "dego.compat",
+    "dego.demo",
+    "dego.study",
+    "dego.viz",
+)
 
 Graph = dict[str, set[str]]
 

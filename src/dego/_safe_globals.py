@@ -1,55 +1,54 @@
 """The classes that ``torch.load(weights_only=True)`` may rebuild, and their registration.
 
-Kept apart from :mod:`dego._serialization` (which every result class imports) so that
-listing the classes creates no import circle: only ``dego/__init__`` imports this module.
+The classes are named, not imported: ``import dego`` registers them without loading their
+modules (and without an import circle with :mod:`dego._serialization`, which every result
+class imports); a class is imported when a pickle first names it.
 """
 
 from __future__ import annotations
 
 import functools
+import importlib
 from typing import Any
 
 import torch
 
-from dego.deformation import (
-    DeformationDeltas,
-    DeformationLoss,
-    DeformationLossWeights,
-    DeformationOutput,
+_SAFE_NAMES = (
+    "dego.gaussians.GaussianSet",
+    "dego.splatting.splatter.SplatOutput",
+    "dego.splatting.projection.Projection",
+    "dego.voxelizer.VoxelOutput",
+    "dego.deformation_results.DeformationOutput",
+    "dego.deformation_results.DeformationDeltas",
+    "dego.deformation_results.DeformationLossWeights",
+    "dego.deformation_results.DeformationLoss",
+    "dego.grid.VoxelGrid",
+    "dego.teacher.factorized.TeacherOutput",
+    "dego.metrics.report.OccupancyReport",
+    "dego.metrics.rayiou.RayIoUReport",
 )
-from dego.gaussians import GaussianSet
-from dego.grid import VoxelGrid
-from dego.metrics.rayiou import RayIoUReport
-from dego.metrics.report import OccupancyReport
-from dego.splatting.projection import Projection
-from dego.splatting.splatter import SplatOutput
-from dego.teacher.factorized import TeacherOutput
-from dego.voxelizer import VoxelOutput
+"""Where each class of :func:`safe_types` is defined (``module.qualname``, its pickled name):
+by name, so that registering them imports none of their modules."""
 
 _FORMER_NAMES = {
-    f"dego.deformation.{cls.__name__}": cls
-    for cls in (DeformationDeltas, DeformationLossWeights, DeformationOutput)
+    f"dego.deformation.{name}": f"dego.deformation_results.{name}"
+    for name in ("DeformationDeltas", "DeformationLossWeights", "DeformationOutput")
 }
 """Where checkpoints saved before a module split name a class (they still load)."""
 
 
+@functools.cache
+def _class(name: str) -> type:
+    """The class named ``module.qualname``, its module imported now."""
+    module, _, qualname = name.rpartition(".")
+    cls: type = getattr(importlib.import_module(module), qualname)
+    return cls
+
+
 def safe_types() -> tuple[type, ...]:
     """The classes :func:`register_safe_globals` allowlists for ``weights_only`` loading:
-    those with checked pickle state, and the dataclasses nested in them."""
-    return (
-        GaussianSet,
-        SplatOutput,
-        Projection,
-        VoxelOutput,
-        DeformationOutput,
-        DeformationDeltas,
-        DeformationLossWeights,
-        DeformationLoss,
-        VoxelGrid,
-        TeacherOutput,
-        OccupancyReport,
-        RayIoUReport,
-    )
+    those with checked pickle state, and the dataclasses nested in them (imports them)."""
+    return tuple(_class(name) for name in _SAFE_NAMES)
 
 
 class _Unbuilt:
@@ -65,15 +64,20 @@ class _Unbuilt:
     the constructor.
     """
 
-    target: type = object
+    target_name: str = ""
+    """The class this stands in for, imported when a pickle first uses it."""
+
+    @classmethod
+    def target(cls) -> type:
+        return _class(cls.target_name)
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Any:
         if args or kwargs:
-            return cls.target(*args, **kwargs)
+            return cls.target()(*args, **kwargs)
         return object.__new__(cls)
 
     def __setstate__(self, state: Any) -> None:
-        target = self.target
+        target = self.target()
         built: Any
         if hasattr(target, "__setstate__"):  # dego's checked state and the constructor
             built = object.__new__(target)
@@ -87,18 +91,18 @@ class _Unbuilt:
 
     def __getattr__(self, name: str) -> Any:
         raise AttributeError(
-            f"{self.target.__name__}: the pickle made this object but never gave it its "
+            f"{self.target().__name__}: the pickle made this object but never gave it its "
             f"fields (no state): a damaged or hostile file; nothing was built (reading {name!r})"
         )
 
     def __repr__(self) -> str:
-        return f"<{self.target.__name__} that its pickle never built>"
+        return f"<{self.target().__name__} that its pickle never built>"
 
 
 @functools.cache
-def _stand_in(cls: type) -> type:
-    """The :class:`_Unbuilt` stand-in of ``cls`` (one per class)."""
-    return type(f"Unbuilt{cls.__name__}", (_Unbuilt,), {"target": cls})
+def _stand_in(name: str) -> type:
+    """The :class:`_Unbuilt` stand-in of the class named ``name`` (one per class)."""
+    return type(f"Unbuilt{name.rpartition('.')[2]}", (_Unbuilt,), {"target_name": name})
 
 
 def register_safe_globals() -> bool:
@@ -108,13 +112,14 @@ def register_safe_globals() -> bool:
 
     From torch 2.5 each class's pickled name (and the names it had before a module split)
     resolves to its :class:`_Unbuilt` stand-in, so that a pickle cannot leave a dego object
-    whose fields were never checked; torch 2.4 allowlists the classes themselves."""
+    whose fields were never checked; no class is imported until a pickle names it. torch
+    2.4 allowlists the classes themselves (imported now)."""
     add = getattr(torch.serialization, "add_safe_globals", None)
     if add is None:
         return False
-    names = {f"{cls.__module__}.{cls.__qualname__}": cls for cls in safe_types()}
+    names = {**{name: name for name in _SAFE_NAMES}, **_FORMER_NAMES}
     try:  # (object, name) pairs: torch >= 2.5
-        add([(_stand_in(cls), name) for name, cls in {**names, **_FORMER_NAMES}.items()])
+        add([(_stand_in(target), name) for name, target in names.items()])
     except (TypeError, AttributeError):
         add(list(safe_types()))
     return True

@@ -19,17 +19,14 @@ import dataclasses
 import functools
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from types import MappingProxyType
 from typing import Any, TypeVar
 
-from beartype import BeartypeConf
-from beartype.door import is_bearable
 from torch import Tensor
 
 T = TypeVar("T")
 
-_CONF = BeartypeConf(is_pep484_tower=True)  # an int is a valid float, as in the constructors
 _SCALARS = (bool, int, float, str)
 
 
@@ -94,8 +91,18 @@ def _describe_value(value: Any) -> str:
     return f"{type(value).__name__} {value!r}"[:120]
 
 
+@functools.cache
+def _bearable() -> Callable[[Any, Any], bool]:
+    """beartype's ``is_bearable`` with an int a valid float, as in the constructors
+    (imported when a pickle is first loaded: 0.25 s that ``import dego`` need not pay)."""
+    from beartype import BeartypeConf
+    from beartype.door import is_bearable
+
+    return functools.partial(is_bearable, conf=BeartypeConf(is_pep484_tower=True))
+
+
 def _check_leaf(value: Any, hint: Any, where: str) -> Any:
-    if not is_bearable(value, hint, conf=_CONF):
+    if not _bearable()(value, hint):
         raise TypeError(f"{where}: expected {_describe_hint(hint)}, got {_describe_value(value)}")
     return value
 

@@ -4,10 +4,12 @@
 
 - **Eager**: jaxtyping's ``jaxtyped`` with beartype as the checker. A wrong shape or dtype
   raises :class:`jaxtyping.TypeCheckError` (a ``TypeError``) whose message names the
-  offending parameter and the axis sizes seen so far. The check runs with TorchDynamo
-  disabled (``torch._dynamo.disable``): when an enclosing ``torch.compile`` falls back to
+  offending parameter and the axis sizes seen so far. Once ``torch._dynamo`` is loaded the
+  check runs with TorchDynamo disabled: when an enclosing ``torch.compile`` falls back to
   running a frame eagerly, dynamo must not trace jaxtyping's and beartype's internals (it
-  would cache their side effects and report false mismatches on later calls).
+  would cache their side effects and report false mismatches on later calls). Before that
+  no compilation can be running, and dego does not import ``torch._dynamo`` itself (about
+  a second and a half): ``import dego`` stays lean.
 - **While ``torch.compile`` traces** (beartype cannot be traced): a traceable check of the
   same annotations, in plain Python over shapes and dtypes, raising the same
   ``TypeCheckError`` naming the parameter. Shapes are known while tracing, so the check
@@ -17,18 +19,20 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import inspect
+import sys
 import types
 import typing
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
 import torch
-from beartype import beartype
 from jaxtyping import TypeCheckError, jaxtyped
+
+from dego._compile import DYNAMO
+from dego._compile import disabled as _disabled
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -72,9 +76,27 @@ def _parameter_spec(name: str, hint: Any) -> _Spec | None:
     return (name, tuple(arrays), len(arrays) < len(alternatives))
 
 
+class _Enclosing(dict[str, Any]):
+    """Names for resolving ``fn``'s annotations at decoration time, when the classes around
+    it (``GaussianSet`` for ``GaussianSet.map -> GaussianSet``) are not defined yet: each
+    stands for a class that is no tensor, which is all the compile-time check needs to know
+    (the eager check resolves the real class on the first call). Any other undefined name is
+    the NameError it is."""
+
+    def __init__(self, fn: Callable[..., Any]) -> None:
+        super().__init__()
+        self.enclosing = set(fn.__qualname__.split(".")[:-1]) - {"<locals>"}
+        self.module_globals = fn.__globals__
+
+    def __missing__(self, name: str) -> Any:
+        if name in self.enclosing and name not in self.module_globals:
+            return type(name, (), {})
+        raise KeyError(name)
+
+
 def _specs(fn: Callable[..., Any]) -> tuple[tuple[str, ...], tuple[_Spec, ...]]:
     """The names of ``fn``'s positional parameters and the specs of its array parameters."""
-    hints = typing.get_type_hints(fn, include_extras=True)
+    hints = typing.get_type_hints(fn, localns=_Enclosing(fn), include_extras=True)
     parameters = inspect.signature(fn).parameters
     positional = tuple(
         name
@@ -201,62 +223,56 @@ def _has_array_return(fn: Callable[..., Any]) -> bool:
     return annotation is not None and "Tensor" in str(annotation)
 
 
-_PENDING: list[Callable[[], None]] = []
+_Checks = tuple[Callable[..., Any], Callable[..., Any]]
+"""One check as is and run with dynamo disabled, indexed by ``DYNAMO in sys.modules``."""
 
 
-def resolve_pending() -> None:
-    """Resolve the annotations that named something not yet defined at decoration time."""
-    while _PENDING:
-        with contextlib.suppress(NameError):  # then on first use, as before
-            _PENDING.pop()()
+def _plain_and_disabled(stub: Callable[..., Any]) -> _Checks:
+    """jaxtyping + beartype's check of ``stub``: as is, and run with dynamo disabled."""
+    from beartype import beartype  # 0.25 s to import: not before a first check
+
+    check = jaxtyped(typechecker=beartype)(stub)
+    return (check, _disabled(check))
 
 
 def typechecked(fn: F) -> F:
-    """Check ``fn``'s jaxtyping annotations on every call, eager or compiled."""
-    check_arguments = torch._dynamo.disable(
-        jaxtyped(typechecker=beartype)(_stub(fn, with_return=False)), recursive=True
-    )
-    check_result = (
-        torch._dynamo.disable(
-            jaxtyped(typechecker=beartype)(_stub(fn, with_return=True)), recursive=True
-        )
-        if _has_array_return(fn)
-        else None
-    )
+    """Check ``fn``'s jaxtyping annotations on every call, eager or compiled.
+
+    The annotations must name objects of ``fn``'s module (or the classes around it): they
+    are resolved in its globals, at decoration for the compiled check and on the first
+    eager call for jaxtyping + beartype's."""
+    # Built on the first eager call (jaxtyping + beartype generate code for each check:
+    # about 4 ms a function, 0.6 s for the whole package were it done at import).
+    checks: list[tuple[_Checks, _Checks | None]] = []
+
+    def build_checks() -> tuple[_Checks, _Checks | None]:
+        arguments = _plain_and_disabled(_stub(fn, with_return=False))
+        result = _plain_and_disabled(_stub(fn, with_return=True)) if _has_array_return(fn) else None
+        checks.append((arguments, result))
+        return checks[0]
+
     qualname = f"{fn.__module__}.{fn.__qualname__}"
-    prepared: list[tuple[tuple[str, ...], tuple[_Spec, ...]]] = []
-
-    @torch._dynamo.disable(recursive=True)
-    def prepare() -> None:
-        prepared.append(_specs(fn))
-
-    # An annotation naming something defined later in its module (a method returning its
-    # own class) resolves once the package is imported (resolve_pending, from dego/__init__),
-    # so that a first call under torch.compile need not run the disabled prepare.
-    try:
-        prepare()
-    except NameError:
-        _PENDING.append(prepare)
+    positional, specs = _specs(fn)  # now: a first call under torch.compile needs no break
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         if _is_compiling():
-            if not prepared:
-                prepare()
-            positional, specs = prepared[0]
             _traced_check(qualname, specs, {**dict(zip(positional, args, strict=False)), **kwargs})
             return fn(*args, **kwargs)
-        check_arguments(*args, **kwargs)
+        check_arguments, check_result = checks[0] if checks else build_checks()
+        # Each check as is, or with dynamo disabled once torch._dynamo is loaded (see the
+        # module docstring).
+        check_arguments[DYNAMO in sys.modules](*args, **kwargs)
         result = fn(*args, **kwargs)
         if check_result is not None:
-            check_result(*args, **kwargs, **{_RESULT: result})
+            check_result[DYNAMO in sys.modules](*args, **kwargs, **{_RESULT: result})
         return result
 
     wrapper.__dict__[TYPECHECKED] = True
     return cast(F, wrapper)
 
 
-_FIELD_CHECKS: dict[type, tuple[tuple[str, ...], Callable[..., Any]]] = {}
+_FIELD_CHECKS: dict[type, tuple[tuple[str, ...], _Checks]] = {}
 
 
 def check_tensor_fields(record: Any) -> None:
@@ -280,11 +296,10 @@ def check_tensor_fields(record: Any) -> None:
         check.__annotations__ = {name: hints[name] for name in names}
         check.__qualname__ = f"{cls.__qualname__}.__init__"
         check.__module__ = cls.__module__
-        checker = torch._dynamo.disable(jaxtyped(typechecker=beartype)(check), recursive=True)
-        _FIELD_CHECKS[cls] = (names, checker)
-    names, checker = _FIELD_CHECKS[cls]
+        _FIELD_CHECKS[cls] = (names, _plain_and_disabled(check))
+    names, checkers = _FIELD_CHECKS[cls]
     if names:
-        checker(**{name: getattr(record, name) for name in names})
+        checkers[DYNAMO in sys.modules](**{name: getattr(record, name) for name in names})
 
 
 __all__ = ["check_tensor_fields", "typechecked"]

@@ -69,6 +69,7 @@ from jaxtyping import Bool, Float, Integer
 from torch import Tensor
 
 from dego import _march_numba
+from dego._compile import eager_only
 from dego._policy import check_dtype, check_memory, compute_dtype, finite_check, run_checks
 from dego._typing import typechecked
 from dego.classes import FREE_LABEL
@@ -383,7 +384,7 @@ def cast_sizes(num_rays: int, grid: VoxelGrid) -> str:
     return f"{num_rays} rays through a {grid.shape[0]} x {grid.shape[1]} x {grid.shape[2]} grid"
 
 
-@torch._dynamo.disable(recursive=True)  # see cast_product
+@eager_only  # see cast_product
 def _traverse(
     labels: Sequence[Tensor],  # G grids (X, Y, Z), any integer dtype, traversed together
     num_rays: int,
@@ -440,7 +441,7 @@ def _product_chunks(origins: Tensor, directions: Tensor) -> Iterator[tuple[Tenso
 
 # Data-dependent by nature (rays retire as they hit): run eagerly under torch.compile, as
 # one graph break, rather than letting dynamo split it at every compaction.
-@torch._dynamo.disable(recursive=True)
+@eager_only
 def cast_product(
     labels: Sequence[Tensor],
     origins: Tensor,

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from dego import CLASS_NAMES, OccupancyMetrics, OccupancyReport, confusion_matrix
 from dego.classes import CLASS_GROUPS, PROTOCOL_CLASSES
+from dego.metrics.report import heading
 from tests.helpers.metrics import FREE, random_sample
 from tests.reference.occ3d import reference_scores
 
@@ -139,10 +140,11 @@ def test_matches_the_reference_recipe(
     assert np.array_equal(metrics.confusion.numpy(), expected["hist"].astype(np.int64))
     report = metrics.compute()
     np.testing.assert_array_equal(report.per_class.numpy(), expected["per_class"])
-    assert report.as_dict(percent=True)["miou"] == expected["miou"] or (
+    # the official code's round(x * 100, 2)
+    assert round(100 * report.miou, 2) == expected["miou"] or (
         math.isnan(expected["miou"]) and math.isnan(report.miou)
     )
-    assert report.as_dict(percent=True)["iou"] == expected["iou"] or math.isnan(expected["iou"])
+    assert round(100 * report.iou, 2) == expected["iou"] or math.isnan(expected["iou"])
 
 
 def test_geometric_state_matches_relabelled_counts() -> None:
@@ -263,7 +265,7 @@ def test_paper_table_group_columns_are_reproduced(method: str) -> None:
     assert report.hcm * 100 == pytest.approx(hcm, abs=tolerance)
     assert report.miou * 100 == pytest.approx(miou, abs=tolerance)
     if iou is not None:
-        assert report.as_dict(percent=True)["iou"] == iou
+        assert round(100 * report.iou, 2) == iou
 
 
 def test_report_table_and_dict() -> None:
@@ -274,11 +276,13 @@ def test_report_table_and_dict() -> None:
     assert "InsM" in text and "ScnM" in text and "HCM" in text and "mIoU" in text
     assert "pedestrian" in text and "others" not in text.split("groups", 1)[1]
     assert f"{report.miou * 100:.2f}" in text and text.splitlines()[0].endswith("IoU in percent")
-    headline = report.headline()  # the tables' summary row, fractions
-    assert list(headline) == ["IoU", "InsM", "ScnM", "HCM", "mIoU"]
-    assert headline["IoU"] == report.iou and headline["mIoU"] == report.miou
-    assert headline["HCM"] == report.hcm
+    headline = report.headline()  # the tables' summary row, fractions, as_dict()'s keys
+    assert list(headline) == ["iou", "insm", "scnm", "hcm", "miou"]
+    assert [heading(k) for k in headline] == ["IoU", "InsM", "ScnM", "HCM", "mIoU"]
+    assert headline["iou"] == report.iou and headline["miou"] == report.miou
+    assert headline["hcm"] == report.hcm
     as_dict = report.as_dict()
+    assert all(as_dict[key] == value for key, value in headline.items())
     assert set(as_dict) >= {"iou", "miou", "insm", "scnm", "hcm", "iou/car"}
     assert (
         "iou/other_flat" not in as_dict and len([k for k in as_dict if k.startswith("iou/")]) == 15
@@ -596,3 +600,17 @@ def test_the_omitted_mask_default_reads_well_in_help() -> None:
     import inspect
 
     assert str(inspect.signature(OccupancyMetrics.update)).endswith("= <omitted>) -> 'None'")
+
+
+def test_former_spellings_warn_and_still_read() -> None:
+    """headline()'s former heading keys and as_dict(percent=True) (percent under keys that
+    are fractions everywhere else) still work for one release, with a FutureWarning."""
+    metrics = OccupancyMetrics("weak")
+    metrics.update(*random_sample(1, shape=(8, 8, 4)))
+    report = metrics.compute()
+    with pytest.warns(FutureWarning, match=r"headline\(\)\['mIoU'\].*\['miou'\]"):
+        assert report.headline()["mIoU"] == report.miou
+    with pytest.raises(KeyError):
+        report.headline()["MIOU"]
+    with pytest.warns(FutureWarning, match=r"as_dict\(percent=True\).*table\(\)"):
+        assert report.as_dict(percent=True)["miou"] == round(100 * report.miou, 2)

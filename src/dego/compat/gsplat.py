@@ -22,6 +22,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from dego._compile import eager_only
 from dego._policy import float32_under_autocast
 from dego.gaussians import GaussianSet
 from dego.spherical_harmonics import MAX_DEGREE, spherical_harmonics
@@ -154,7 +155,7 @@ def _check_shape(name: str, tensor: Any, expected: tuple[int | str, ...]) -> Non
 # Under torch.compile the adapter runs eagerly, as one graph break: its gsplat-layout
 # bookkeeping (``retain_grad`` on ``meta["means2d"]``, the packed layout's data-dependent
 # ``nonzero``) cannot be traced. ``dego.splat`` is the compile-friendly entry point.
-@torch._dynamo.disable(recursive=True)
+@eager_only
 @float32_under_autocast()
 def rasterization(
     means: Tensor,

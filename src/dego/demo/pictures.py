@@ -73,7 +73,7 @@ def bev_figure(
         grid=clip.grid,
         titles=(
             f"{variant}: prediction, t = {offset:+d}\n{score}",
-            f"ground truth, t = {offset:+d}\ngrey: outside the camera mask",
+            f"ground truth, t = {offset:+d}\nhatched: outside the camera mask",
         ),
         mask=scored,
     )

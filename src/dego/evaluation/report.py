@@ -22,7 +22,7 @@ from dego._typing import check_tensor_fields
 from dego._units import UNIT, percent_or_none, percent_text
 from dego.evaluation.errors import SampleFailure
 from dego.metrics.rayiou import RayIoUReport
-from dego.metrics.report import OccupancyReport
+from dego.metrics.report import OccupancyReport, heading
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -219,7 +219,7 @@ class EvaluationReport:
                 f"## Voxel IoU (percent), {name} protocol "
                 f"(mIoU over {len(report.evaluated_classes)} classes)",
                 "",
-                "| " + " | ".join(summary) + " |",
+                "| " + " | ".join(heading(k) for k in summary) + " |",
                 "|" + "|".join("---:" for _ in summary) + "|",
                 "| " + " | ".join(percent_text(v) for v in summary.values()) + " |",
                 "",

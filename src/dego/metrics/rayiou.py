@@ -23,6 +23,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dego import _serialization, _units
+from dego._compile import eager_only
 from dego._geometry import rotation_matrices
 from dego._policy import check_finite, check_memory, run_checks
 from dego._typing import check_tensor_fields, typechecked
@@ -125,11 +126,12 @@ class RayIoUReport(_serialization.DictForm):
     class_names: tuple[str, ...]
 
     def as_dict(self, *, percent: bool = False) -> dict[str, float]:
-        """``{"rayiou", "rayiou@<t>", "rayiou@<t>/<class>"}`` for loggers.
-
-        Values are fractions (like :meth:`OccupancyReport.as_dict`), or percentages
-        rounded to 2 decimals with ``percent=True``.
+        """``{"rayiou", "rayiou@<t>", "rayiou@<t>/<class>"}`` for loggers, fractions (like
+        :meth:`OccupancyReport.as_dict`). ``percent=True`` (deprecated) rounds percentages
+        to 2 decimals under the same keys: print :meth:`table` for the papers' numbers.
         """
+        if percent:
+            _units.warn_percent_keys("RayIoUReport.as_dict(percent=True)")
 
         def fmt(v: float) -> float:
             return round(_units.percent(v), 2) if percent else v
@@ -305,7 +307,7 @@ class RayIoUSpec:
 
     # Ray traversal is data-dependent: under torch.compile a sample is cast and scored
     # eagerly, as one graph break.
-    @torch._dynamo.disable(recursive=True)
+    @eager_only
     def counts(
         self,
         pred: Tensor | np.ndarray,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 
@@ -14,6 +15,7 @@ from torch import Tensor
 
 from dego import _serialization, _units
 from dego._typing import check_tensor_fields, typechecked
+from dego._units import warn_percent_keys
 
 
 @typechecked
@@ -39,7 +41,30 @@ def _nanmean(values: Tensor) -> float:
     return float(np.nanmean(array)) if (~np.isnan(array)).any() else math.nan
 
 
-_GROUP_HEADINGS = {"insm": "InsM", "scnm": "ScnM", "hcm": "HCM"}
+_HEADINGS = {"iou": "IoU", "insm": "InsM", "scnm": "ScnM", "hcm": "HCM", "miou": "mIoU"}
+
+
+def heading(key: str) -> str:
+    """The column heading the tables print for a score key (``"miou"`` -> ``"mIoU"``);
+    keys are lower case everywhere else (``as_dict()``, ``headline()``, loggers, JSON)."""
+    return _HEADINGS.get(key, key)
+
+
+class _Headline(dict[str, float]):
+    """:meth:`OccupancyReport.headline`'s dict: its keys are the lower-case score keys;
+    the headings it used before (``"IoU"``, ``"mIoU"``, ...) still read, with a warning."""
+
+    def __missing__(self, key: str) -> float:
+        current = {title: key for key, title in _HEADINGS.items()}.get(key)
+        if current is None or current not in self:
+            raise KeyError(key)
+        warnings.warn(
+            f"headline()[{key!r}]: the keys are lower case now, like as_dict()'s: use "
+            f"[{current!r}] (the heading {key!r} stops working in dego 0.3)",
+            FutureWarning,
+            stacklevel=2,
+        )
+        return self[current]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -137,11 +162,13 @@ class OccupancyReport(_serialization.DictForm):
         return self._group("hcm")
 
     def as_dict(self, *, percent: bool = False) -> dict[str, float]:
-        """Flat ``{"iou", "miou", <group>, "iou/<class>"}`` for loggers.
-
-        Values are fractions, or percentages rounded to 2 decimals (the papers' numbers)
-        with ``percent=True``. Per-class entries cover ``evaluated_classes``.
+        """Flat ``{"iou", "miou", <group>, "iou/<class>"}`` for loggers, fractions (a key
+        holds a fraction wherever dego gives one). Per-class entries cover
+        ``evaluated_classes``. ``percent=True`` (deprecated) rounds percentages to 2
+        decimals under the same keys: print :meth:`table` for the papers' numbers.
         """
+        if percent:
+            warn_percent_keys("OccupancyReport.as_dict(percent=True)")
 
         def fmt(v: float) -> float:
             return round(_units.percent(v), 2) if percent else v
@@ -153,10 +180,10 @@ class OccupancyReport(_serialization.DictForm):
         return out
 
     def headline(self) -> dict[str, float]:
-        """The summary row of the tables, in their order and with their headings:
-        ``{"IoU", "InsM", "ScnM", "HCM" (the configured groups), "mIoU"}``, fractions."""
-        groups = {_GROUP_HEADINGS.get(k, k): v for k, v in self.group_means.items()}
-        return {"IoU": self.iou, **groups, "mIoU": self.miou}
+        """The summary row of the tables, in their order, keyed like :meth:`as_dict`:
+        ``{"iou", "insm", "scnm", "hcm" (the configured groups), "miou"}``, fractions
+        (:func:`heading` gives each column's printed heading)."""
+        return _Headline({"iou": self.iou, **self.group_means, "miou": self.miou})
 
     def table(self) -> str:
         """A paper-style text table in percent with two decimals (the first line says so),
@@ -165,7 +192,7 @@ class OccupancyReport(_serialization.DictForm):
         lines = [
             f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes, "
             "IoU in percent",
-            "| " + " | ".join(f"{k:>6}" for k in summary) + " |",
+            "| " + " | ".join(f"{heading(k):>6}" for k in summary) + " |",
             "|" + "|".join("-" * 8 for _ in summary) + "|",
             "| " + " | ".join(f"{_units.percent_text(v):>6}" for v in summary.values()) + " |",
             "",
@@ -182,4 +209,4 @@ class OccupancyReport(_serialization.DictForm):
         return self.table()
 
 
-__all__ = ["OccupancyReport", "per_class_iou"]
+__all__ = ["OccupancyReport", "heading", "per_class_iou"]

@@ -17,6 +17,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from dego._compile import eager_only
 from dego._policy import HALF_DTYPES
 from dego._typing import _is_compiling, typechecked
 from dego.gaussians import GaussianSet
@@ -185,7 +186,7 @@ class _Composited:
 # Data-dependent by nature (the pair count, each tile's list length): run eagerly under
 # torch.compile, as one graph break, rather than letting dynamo split it at each of its
 # dynamic-shape operators. Its chunk kernels are compiled when the caller is.
-@torch._dynamo.disable(recursive=True)
+@eager_only
 def _bin_and_composite(
     proj: Projection,
     extents: Tensor,

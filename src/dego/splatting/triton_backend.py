@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from dego._compile import eager_only
 from dego._typing import _is_compiling
 from dego.gaussians import GaussianSet
 from dego.splatting.tiles import TileLists
@@ -114,7 +115,7 @@ def _device_name(device: torch.device) -> str:
     return str(device)
 
 
-@torch._dynamo.disable
+@eager_only
 def _probe(device: torch.device) -> str | None:
     """Compile and run both kernels once on a tiny input; the error text if they fail.
     Runs with gradients on, whatever the caller's mode (``no_grad``, ``inference_mode``)."""
@@ -188,7 +189,7 @@ def bin_and_composite(
     return _eager(binning, tensors, shape, rules, absgrad_sink)
 
 
-@torch._dynamo.disable
+@eager_only
 def _eager(
     binning: tuple[Tensor, Tensor, Tensor, Tensor, Tensor],
     tensors: tuple[Tensor, ...],

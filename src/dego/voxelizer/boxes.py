@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from dego._compile import eager_only
 from dego._geometry import rotation_matrices
 from dego.grid import VoxelGrid
 from dego.voxelizer.inputs import check_size
@@ -110,7 +111,7 @@ def voxelize_boxes(flat: FlatGaussians, grid: VoxelGrid, config: VoxelizerConfig
 
 # Data-dependent by nature (the number of (Gaussian, voxel) pairs): run eagerly under
 # torch.compile, as one graph break, rather than recompiling for every pair count.
-@torch._dynamo.disable(recursive=True)
+@eager_only
 def _sum_box_pairs(
     flat: FlatGaussians,
     grid: VoxelGrid,

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from dego._compile import eager_only
 from dego._geometry import scaled_rotation_gram
 from dego.grid import VoxelGrid
 from dego.voxelizer.boxes import grid_float64
@@ -92,7 +93,7 @@ def voxelize_cube(flat: FlatGaussians, grid: VoxelGrid, config: VoxelizerConfig)
 
 # Data-dependent by nature (the number of (Gaussian, voxel) pairs): run eagerly under
 # torch.compile, as one graph break, rather than recompiling for every pair count.
-@torch._dynamo.disable(recursive=True)
+@eager_only
 def _sum_cube_pairs(
     flat: FlatGaussians,
     grid: VoxelGrid,
