@@ -220,7 +220,7 @@ def quick_study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
         [sys.executable, "-m", "dego", *command, "--device", "cpu", "--out", str(out)],
         capture_output=True,
         text=True,
-        timeout=600,
+        timeout=1200,  # a hang: the run takes 60-85 s here, several times that under load
     )
     assert result.returncode == 0, result.stderr
     return out, result.stdout

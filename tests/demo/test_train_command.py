@@ -141,7 +141,7 @@ def test_quick_runs_the_chosen_variants_and_writes_its_outputs(tmp_path: Path) -
         capture_output=True,
         text=True,
         env=env,
-        timeout=600,
+        timeout=1200,  # a hang: the run takes 45-75 s here, several times that under load
     )
     assert result.returncode == 0, result.stderr[-3000:]
     payload = json.loads((out / "train.json").read_text())
