@@ -16,7 +16,7 @@ import torch
 from jaxtyping import TypeCheckError
 
 import dego
-from dego import _typing
+from dego import _compile, _typing
 
 SRC = Path(dego.__file__).resolve().parent
 
@@ -193,7 +193,7 @@ def test_eager_checks_disable_dynamo_exactly_when_it_is_loaded(
 
         return run
 
-    monkeypatch.setattr(_typing, "_disabled", recording_disabled)
+    monkeypatch.setattr(_compile, "disabled", recording_disabled)
 
     @_typing.typechecked
     def double(x: torch.Tensor) -> torch.Tensor:

@@ -27,17 +27,25 @@ def disabled(fn: F) -> F:
     return cast(F, torch._disable_dynamo(fn, recursive=True))
 
 
+PlainAndDisabled = tuple[Callable[..., Any], Callable[..., Any]]
+"""A function as is and run with dynamo disabled: index it with ``DYNAMO in sys.modules``."""
+
+
+def plain_and_disabled(fn: Callable[..., Any]) -> PlainAndDisabled:
+    """``(fn, disabled(fn))``, to call ``[DYNAMO in sys.modules]``: before dynamo is loaded
+    nothing can be compiling, and ``fn`` runs as is without importing it."""
+    return (fn, disabled(fn))
+
+
 def eager_only(fn: F) -> F:
     """``fn`` run with TorchDynamo disabled (recursively) once dynamo is loaded."""
-    fn_disabled = disabled(fn)
+    choices = plain_and_disabled(fn)
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        if DYNAMO in sys.modules:
-            return fn_disabled(*args, **kwargs)
-        return fn(*args, **kwargs)
+        return choices[DYNAMO in sys.modules](*args, **kwargs)
 
     return cast(F, wrapper)
 
 
-__all__ = ["DYNAMO", "disabled", "eager_only"]
+__all__ = ["DYNAMO", "PlainAndDisabled", "disabled", "eager_only", "plain_and_disabled"]

@@ -31,8 +31,7 @@ from typing import Any, TypeVar, cast
 import torch
 from jaxtyping import TypeCheckError, jaxtyped
 
-from dego._compile import DYNAMO
-from dego._compile import disabled as _disabled
+from dego._compile import DYNAMO, PlainAndDisabled, plain_and_disabled
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -223,16 +222,11 @@ def _has_array_return(fn: Callable[..., Any]) -> bool:
     return annotation is not None and "Tensor" in str(annotation)
 
 
-_Checks = tuple[Callable[..., Any], Callable[..., Any]]
-"""One check as is and run with dynamo disabled, indexed by ``DYNAMO in sys.modules``."""
-
-
-def _plain_and_disabled(stub: Callable[..., Any]) -> _Checks:
+def _check_of(stub: Callable[..., Any]) -> PlainAndDisabled:
     """jaxtyping + beartype's check of ``stub``: as is, and run with dynamo disabled."""
     from beartype import beartype  # 0.25 s to import: not before a first check
 
-    check = jaxtyped(typechecker=beartype)(stub)
-    return (check, _disabled(check))
+    return plain_and_disabled(jaxtyped(typechecker=beartype)(stub))
 
 
 def typechecked(fn: F) -> F:
@@ -243,11 +237,11 @@ def typechecked(fn: F) -> F:
     eager call for jaxtyping + beartype's."""
     # Built on the first eager call (jaxtyping + beartype generate code for each check:
     # about 4 ms a function, 0.6 s for the whole package were it done at import).
-    checks: list[tuple[_Checks, _Checks | None]] = []
+    checks: list[tuple[PlainAndDisabled, PlainAndDisabled | None]] = []
 
-    def build_checks() -> tuple[_Checks, _Checks | None]:
-        arguments = _plain_and_disabled(_stub(fn, with_return=False))
-        result = _plain_and_disabled(_stub(fn, with_return=True)) if _has_array_return(fn) else None
+    def build_checks() -> tuple[PlainAndDisabled, PlainAndDisabled | None]:
+        arguments = _check_of(_stub(fn, with_return=False))
+        result = _check_of(_stub(fn, with_return=True)) if _has_array_return(fn) else None
         checks.append((arguments, result))
         return checks[0]
 
@@ -272,7 +266,7 @@ def typechecked(fn: F) -> F:
     return cast(F, wrapper)
 
 
-_FIELD_CHECKS: dict[type, tuple[tuple[str, ...], _Checks]] = {}
+_FIELD_CHECKS: dict[type, tuple[tuple[str, ...], PlainAndDisabled]] = {}
 
 
 def check_tensor_fields(record: Any) -> None:
@@ -296,7 +290,7 @@ def check_tensor_fields(record: Any) -> None:
         check.__annotations__ = {name: hints[name] for name in names}
         check.__qualname__ = f"{cls.__qualname__}.__init__"
         check.__module__ = cls.__module__
-        _FIELD_CHECKS[cls] = (names, _plain_and_disabled(check))
+        _FIELD_CHECKS[cls] = (names, _check_of(check))
     names, checkers = _FIELD_CHECKS[cls]
     if names:
         checkers[DYNAMO in sys.modules](**{name: getattr(record, name) for name in names})

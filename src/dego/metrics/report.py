@@ -15,7 +15,6 @@ from torch import Tensor
 
 from dego import _serialization, _units
 from dego._typing import check_tensor_fields, typechecked
-from dego._units import warn_percent_keys
 
 
 @typechecked
@@ -42,6 +41,7 @@ def _nanmean(values: Tensor) -> float:
 
 
 _HEADINGS = {"iou": "IoU", "insm": "InsM", "scnm": "ScnM", "hcm": "HCM", "miou": "mIoU"}
+_KEYS = {title: key for key, title in _HEADINGS.items()}  # what headline() was keyed by
 
 
 def heading(key: str) -> str:
@@ -55,7 +55,7 @@ class _Headline(dict[str, float]):
     the headings it used before (``"IoU"``, ``"mIoU"``, ...) still read, with a warning."""
 
     def __missing__(self, key: str) -> float:
-        current = {title: key for key, title in _HEADINGS.items()}.get(key)
+        current = _KEYS.get(key)
         if current is None or current not in self:
             raise KeyError(key)
         warnings.warn(
@@ -168,7 +168,7 @@ class OccupancyReport(_serialization.DictForm):
         decimals under the same keys: print :meth:`table` for the papers' numbers.
         """
         if percent:
-            warn_percent_keys("OccupancyReport.as_dict(percent=True)")
+            _units.warn_percent_keys("OccupancyReport.as_dict(percent=True)")
 
         def fmt(v: float) -> float:
             return round(_units.percent(v), 2) if percent else v
