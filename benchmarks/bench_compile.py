@@ -104,8 +104,8 @@ def w1(repeats: int, device: torch.device, backend: str = "torch") -> None:
 
 def fit_step(repeats: int) -> None:
     from dego import SyntheticScene
-    from dego.cli import BUDGETS
     from dego.demo import DEMO_FRAME_DT, DemoClip, FitConfig, build_deformation, initial_model
+    from dego.demo.command import BUDGETS
     from dego.demo.fit import _frame_losses
 
     budget = BUDGETS["quick"]

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from dego.demo import row_name
-from dego.study import METRICS, STUDY_VARIANTS, Interval, mean_interval
+from dego.demo.study import METRICS, STUDY_VARIANTS, Interval, mean_interval
 
 GAINS = ("rigid", "decoupled", "free-offsets", "free-velocities", "true-motion", "single-frame")
 PAIRED = (

@@ -33,8 +33,8 @@ from dego.demo import (
     format_table,
     predict_clip,
     score_clip,
-    weak_losses,
 )
+from dego.losses import rendering_loss
 
 
 def main() -> None:
@@ -101,12 +101,19 @@ def main() -> None:
             clip.intrinsics[index : index + 1],
             clip.image_size,
         )
-        losses = weak_losses(
-            rendered, clip.depth[index], clip.semantics[index], clip.supervised[index]
+        # L_seg (cross-entropy, free space = 1 - alpha) and L_dep (L1 where there is
+        # pseudo depth) on the supervised pixels; inputs are (B, V, ...) with B = 1.
+        losses = rendering_loss(
+            rendered.features,
+            rendered.alpha,
+            rendered.depth,
+            clip.semantics[index][None],
+            clip.depth[index][None],
+            clip.supervised[index][None],
         )
         total = (
-            losses["semantics"]
-            + config.depth_weight * losses["depth"]
+            losses.semantic
+            + config.depth_weight * losses.depth
             + config.deformation_weight * deformation_term
         )
         optimizer.zero_grad()
@@ -114,8 +121,8 @@ def main() -> None:
         optimizer.step()
         if step % max(1, args.iterations // 5) == 0 or step == args.iterations - 1:
             print(
-                f"step {step:4d}  frame {index}  semantics {losses['semantics'].item():.3f}  "
-                f"depth {losses['depth'].item():.2f} m  deformation {deformation_term.item():.4f}"
+                f"step {step:4d}  frame {index}  semantics {losses.semantic.item():.3f}  "
+                f"depth {losses.depth.item():.2f} m  deformation {deformation_term.item():.4f}"
             )
 
     # 4. Voxelise at every frame (deformed to t, in t's ego coordinates) and score: the

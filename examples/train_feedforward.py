@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from dego import DecoupledDeformation, deformation_loss, splat
-from dego.demo import MOVABLE_CLASSES, most_likely_in, weak_losses
+from dego.demo import MOVABLE_CLASSES, most_likely_in
 from dego.demo.feedforward import (
     DataConfig,
     GaussianPredictor,
@@ -25,6 +25,7 @@ from dego.demo.feedforward import (
     load_scenes,
     scene_seeds,
 )
+from dego.losses import rendering_loss
 
 
 def main() -> None:
@@ -83,10 +84,15 @@ def main() -> None:
                 scene.intrinsics[index][None],
                 scene.image_size,
             )
-            terms = weak_losses(
-                rendered, scene.depth[index], scene.semantics[index], scene.supervised[index]
+            terms = rendering_loss(
+                rendered.features,
+                rendered.alpha,
+                rendered.depth,
+                scene.semantics[index][None],
+                scene.depth[index][None],
+                scene.supervised[index][None],
             )
-            loss = loss + terms["semantics"] + 0.1 * terms["depth"]
+            loss = loss + terms.semantic + 0.1 * terms.depth
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

@@ -12,8 +12,8 @@ of its six cameras) per step.
 
 - ``training_step`` computes the demo's weak losses of the step's frame (deform the
   canonical Gaussians to the frame's time with ``gaussians_at``, splat them into its
-  cameras with ``render``, cross-entropy + L1 depth with ``weak_losses``, plus the
-  deformation regulariser) in a function wrapped in ``torch.compile``
+  cameras with ``render``, cross-entropy + L1 depth with ``dego.losses.semantic_loss`` and
+  ``depth_loss``, plus the deformation regulariser) in a function wrapped in ``torch.compile``
   (``--compile-backend``: ``inductor``, the default, ``aot_eager``, ``eager`` or ``none``).
   dego's data-dependent parts (tile binning and compositing, boolean masks) run eagerly
   between the compiled graphs. The function returns ``torch.compiler.is_compiling()``
@@ -77,8 +77,8 @@ from dego.demo import (
     predict_labels,
     render,
     to_ego,
-    weak_losses,
 )
+from dego.losses import depth_loss, semantic_loss
 from dego.splatting import composite
 
 BACKENDS = ("inductor", "aot_eager", "eager", "none")
@@ -123,12 +123,14 @@ class LitSceneFit(L.LightningModule):
             config.mask_sparsity,
             config.offset_gradients,
         )
-        losses = weak_losses(
-            render(gaussians, clip, index, cameras),
-            clip.depth[index][cameras],
-            clip.semantics[index][cameras],
-            clip.supervised[index][cameras],
-        )
+        rendered = render(gaussians, clip, index, cameras)
+        supervised = clip.supervised[index][cameras][None]
+        losses = {
+            "semantics": semantic_loss(
+                rendered.features, rendered.alpha, clip.semantics[index][cameras][None], supervised
+            ),
+            "depth": depth_loss(rendered.depth, clip.depth[index][cameras][None], supervised),
+        }
         losses["deformation"] = (
             deformation_terms["total"] if deformation_terms else losses["depth"].new_zeros(())
         )

@@ -372,7 +372,8 @@ def test_a_pickle_cannot_make_an_object_without_its_checked_state(cls: type) -> 
 
 
 def test_checkpoints_naming_classes_where_they_lived_before_a_split_still_load() -> None:
-    """Deformation results moved to dego.deformation_results; old files name dego.deformation."""
+    """Deformation results moved out of dego.deformation (one module then); old files name
+    dego.deformation."""
     from dego import DeformationLossWeights
 
     weights = DeformationLossWeights(reg=0.5)
@@ -383,9 +384,54 @@ def test_checkpoints_naming_classes_where_they_lived_before_a_split_still_load()
         torch.save(weights, buffer)
     finally:
         DeformationLossWeights.__module__ = moved
-    assert b"deformation_results" not in buffer.getvalue()
+    assert b"dego.deformation.loss" not in buffer.getvalue()  # only the name it had then
     buffer.seek(0)
     assert torch.load(buffer, weights_only=True) == weights
+
+
+@needs_safe_globals
+@pytest.mark.parametrize("former", ["dego.deformation", "dego.deformation_results"])
+def test_deformation_checkpoints_saved_before_the_package_still_load(
+    former: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """dego.deformation became a package (its classes in dego.deformation.results and
+    .loss); files saved before name them in dego.deformation_results (or, older still,
+    dego.deformation) and load with weights_only=True as equal objects."""
+    import types
+
+    from dego.deformation import DeformationDeltas, DeformationLoss, DeformationLossWeights
+
+    output = deformation_output(torch.float64, "official")
+    loss = DeformationLoss(torch.tensor(0.5), torch.tensor(0.25), torch.tensor(0.75))
+    saved: dict[str, Any] = {"output": output}
+    classes: list[type] = [DeformationOutput, DeformationDeltas, DeformationLossWeights]
+    if former == "dego.deformation_results":  # DeformationLoss was never saved in the other
+        saved["loss"] = loss
+        classes.append(DeformationLoss)
+    # as saved before the move: pickle names each class by __module__, and checks that
+    # importing it finds the class (dego.deformation_results no longer exists)
+    old_module = types.ModuleType(former)
+    for cls in classes:
+        monkeypatch.setattr(cls, "__module__", former)
+        setattr(old_module, cls.__qualname__, cls)
+    if former not in sys.modules:
+        monkeypatch.setitem(sys.modules, former, old_module)
+    buffer = io.BytesIO()
+    torch.save(saved, buffer)
+    monkeypatch.undo()
+    pickled = buffer.getvalue()
+    for cls in classes:
+        assert f"{former}\n{cls.__qualname__}\n".encode() in pickled, cls
+    assert b"dego.deformation.results" not in pickled and b"dego.deformation.loss" not in pickled
+    buffer.seek(0)
+    loaded = torch.load(buffer, weights_only=True)
+    assert type(loaded["output"]) is DeformationOutput
+    assert_same(loaded["output"], output)
+    assert loaded["output"].nonrigid_offsets is loaded["output"].rigid_offsets  # still shared
+    if "loss" in saved:
+        assert type(loaded["loss"]) is DeformationLoss
+        terms = ("reg", "mask", "total")
+        assert all(torch.equal(getattr(loaded["loss"], t), getattr(loss, t)) for t in terms)
 
 
 @needs_safe_globals

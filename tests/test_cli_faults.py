@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 import torch
 
-import dego.cli
+import dego.demo.command
+import dego.demo.study.command
 from dego.cli import main
 from tests.helpers.cli_faults import FullDisk, usage_error
 from tests.helpers.repo import ROOT, needs_source_tree
@@ -30,8 +31,8 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
     def started(*args: object, **kwargs: object) -> int:
         raise AssertionError("the work started before the flags were checked")
 
-    monkeypatch.setattr(dego.cli, "run_demo", started)
-    monkeypatch.setattr(dego.cli, "run_study", started)
+    monkeypatch.setattr(dego.demo.command, "run_demo", started)
+    monkeypatch.setattr(dego.demo.study.command, "run_study", started)
 
 
 # -- bad flags are usage errors before any work -------------------------------------------
@@ -92,7 +93,7 @@ def test_bad_study_flags_are_usage_errors_before_any_work(
 
 
 def test_study_config_refuses_duplicates() -> None:
-    from dego.study import StudyConfig
+    from dego.demo.study import StudyConfig
 
     for field, value in [("seeds", (1, 1)), ("budgets", (300, 300)), ("variants", ("rigid",) * 2)]:
         with pytest.raises(ValueError, match=f"^{field}: .*repeat"):
@@ -162,7 +163,10 @@ def test_out_is_created_before_the_work_starts(
         seen.append(out.is_dir())
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(dego.cli, "run_demo" if command == "demo" else "run_study", started)
+    if command == "demo":
+        monkeypatch.setattr(dego.demo.command, "run_demo", started)
+    else:
+        monkeypatch.setattr(dego.demo.study.command, "run_study", started)
     assert main([command, "--quick", "--out", str(out)]) == 130
     assert seen == [True]
     assert not (tmp_path / "new").exists()  # interrupted: the folders it made are gone
@@ -217,10 +221,10 @@ def test_demo_results_are_written_whole_or_not_at_all(
     arguments = (out, "| table |", ["rigid - static: +1.0"], {}, {}, {}, 0, budget)
     FullDisk(monkeypatch, tmp_path.resolve())
     with pytest.raises(OSError, match="No space left"):
-        dego.cli._write_results(*arguments, torch.device("cpu"))
+        dego.demo.command._write_results(*arguments, torch.device("cpu"))
     assert _contents(out) == before  # the previous run, whole; no temporary files
     monkeypatch.undo()
-    dego.cli._write_results(*arguments, torch.device("cpu"))
+    dego.demo.command._write_results(*arguments, torch.device("cpu"))
     assert set(_contents(out)) == set(before)
     assert b"| table |" in (out / "results.md").read_bytes()
 
@@ -228,7 +232,7 @@ def test_demo_results_are_written_whole_or_not_at_all(
 def test_study_report_is_written_whole_or_not_at_all(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from dego.study import MASK_METRICS, METRICS, StudyConfig, StudyRun, write_study
+    from dego.demo.study import MASK_METRICS, METRICS, StudyConfig, StudyRun, write_study
 
     out = tmp_path / "study"
     before = _previous_run(out, ["study.md", "study.json"])
@@ -313,7 +317,7 @@ def test_ctrl_c_ends_with_130_one_line_and_no_partial_outputs(command: str, tmp_
 @needs_source_tree
 def test_the_documented_flag_bounds_are_the_code_s() -> None:
     """docs/validation.md, docs/study.md and docs/evaluation.md quote these bounds."""
-    from dego import cli
+    from dego import _cli_args as cli
     from dego.demo.clip import MAX_DEMO_FRAMES
     from dego.demo.fit import MAX_SEED
     from dego.evaluation.command import MAX_WORKERS

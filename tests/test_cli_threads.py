@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-import dego.cli
+import dego.demo.command
+import dego.demo.study.command
 from dego.cli import main
 from dego.evaluation import command as eval_command
 from tests.helpers.cli_faults import usage_error
@@ -50,7 +51,8 @@ def test_threads_apply_before_the_work(
 
         monkeypatch.setattr(train_command, "run_feedforward_study", started)
     else:
-        monkeypatch.setattr(dego.cli, f"run_{command}", started)
+        module = dego.demo.command if command == "demo" else dego.demo.study.command
+        monkeypatch.setattr(module, f"run_{command}", started)
     argv = [command, "--quick", "--out", str(tmp_path / "out"), "--threads", "1"]
     if command == "train":
         argv += ["--no-cache"]

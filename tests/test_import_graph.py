@@ -4,18 +4,23 @@ The graph is read from the source with :mod:`ast` (nothing is imported): every `
 and ``from ... import`` anywhere in a module counts, lazy ones inside functions and those
 under ``if TYPE_CHECKING:`` included; relative imports are resolved; ``from dego.x import y``
 is an edge to ``dego.x.y`` when ``y`` is a submodule, else to ``dego.x``; a literal
-``importlib.import_module("dego.x")`` counts too. Edges to the parent packages that Python
+``importlib.import_module("dego.x")`` counts too, and so does ``Command("dego.x", ...)`` (an
+entry of ``dego.cli.COMMANDS``). Edges to the parent packages that Python
 runs implicitly (``dego`` for ``import dego.x``) are not added: they are not import
 statements of the module, and every module would otherwise sit in a cycle with ``dego``.
 
-Layers (docs: DESIGN.md section 1, "Layering"): the *outer* modules ``dego.__main__``,
-``dego._entry`` (the console script), ``dego.cli``, ``dego.compat.*``, ``dego.demo.*``, ``dego.study`` and ``dego.viz`` may import
-the core and each other; the *core* (everything else) never imports an outer module.
+Layers (docs/architecture.md, whose table this file parses): every package sits on one
+layer and imports only its own layer and those below; the packages' graph has no cycle; no
+module is over :data:`MAX_MODULE_LINES` lines and ``dego.cli`` is under
+:data:`MAX_CLI_LINES`. The two-layer rule that came first stays: the *outer* modules
+(:data:`OUTER`) may import the core and each other; the *core* (everything else) never
+imports an outer module.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -23,6 +28,9 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
+ARCHITECTURE = SRC.parent / "docs" / "architecture.md"
+MAX_MODULE_LINES = 850
+MAX_CLI_LINES = 200
 OUTER = (
     "dego.__main__",
     "dego._entry",
@@ -93,7 +101,7 @@ def _imported_names(tree: ast.AST, module: str, is_package: bool) -> Iterable[st
             isinstance(node, ast.Call)
             and isinstance(node.func, ast.Attribute | ast.Name)
             and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id)
-            == "import_module"
+            in ("import_module", "Command")
             and node.args
             and isinstance(node.args[0], ast.Constant)
             and isinstance(node.args[0].value, str)
@@ -316,3 +324,125 @@ def test_builder_outer_modules_may_import_each_other(tmp_path: Path) -> None:
     assert layering_violations(graph) == []
     assert strongly_connected_components({"a": {"a"}}) == [["a"]]
     assert import_cycles({"a": {"a"}, "b": set()}) == [["a"]]
+
+
+# -- the layers of docs/architecture.md -------------------------------------------------------
+
+
+def read_layers(page: Path) -> dict[str, int]:
+    """``{unit: layer}`` from the table of docs/architecture.md: rows ``| N | `dego.x`, ... |``."""
+    layers: dict[str, int] = {}
+    for match in re.finditer(r"^\| (\d+) \| ([^|]+) \|", page.read_text(), flags=re.MULTILINE):
+        for name in re.findall(r"`(dego[\w.]*)`", match[2]):
+            assert name not in layers, f"{name} is on two layers of {page.name}"
+            layers[name] = int(match[1])
+    return layers
+
+
+def unit_of(module: str, units: Iterable[str]) -> str | None:
+    """The longest unit of the layer table that is ``module`` or a package holding it."""
+    found = [u for u in units if module == u or module.startswith(u + ".")]
+    return max(found, key=len) if found else None
+
+
+def package_of(module: str, graph: Mapping[str, Iterable[str]]) -> str:
+    """The package a module belongs to: itself for a package or a top-level module, else
+    its parent package (``dego.demo.stats`` -> ``dego.demo``, ``dego.cli`` -> ``dego.cli``)."""
+    if any(other.startswith(module + ".") for other in graph):
+        return module  # a package
+    parent = module.rpartition(".")[0]
+    return parent if module.count(".") >= 2 and parent in graph else module
+
+
+def package_graph(graph: Mapping[str, Iterable[str]]) -> Graph:
+    """The graph between packages (:func:`package_of`), self-edges dropped."""
+    out: Graph = {package_of(m, graph): set() for m in graph}
+    for a, targets in graph.items():
+        for b in targets:
+            pa, pb = package_of(a, graph), package_of(b, graph)
+            if pa != pb:
+                out[pa].add(pb)
+    return out
+
+
+def upward_imports(
+    graph: Mapping[str, Iterable[str]], layers: Mapping[str, int]
+) -> list[tuple[str, str]]:
+    """Edges from a module into a module of a higher layer (an arrow back up)."""
+    out = []
+    for a, targets in graph.items():
+        for b in targets:
+            ua, ub = unit_of(a, layers), unit_of(b, layers)
+            if ua is not None and ub is not None and layers[ua] < layers[ub]:
+                out.append((a, b))
+    return sorted(out)
+
+
+@pytest.fixture(scope="module")
+def layers() -> dict[str, int]:
+    if not ARCHITECTURE.is_file():
+        pytest.skip("docs/architecture.md is not next to the tests (run from the repository)")
+    return read_layers(ARCHITECTURE)
+
+
+def test_every_module_sits_on_a_layer(dego_graph: Graph, layers: dict[str, int]) -> None:
+    assert set(layers) - set(dego_graph) == set(), "the table names modules that do not exist"
+    homeless = sorted(m for m in dego_graph if unit_of(m, layers) is None)
+    assert not homeless, f"add these to docs/architecture.md's table: {homeless}"
+
+
+def test_no_import_goes_up_a_layer(dego_graph: Graph, layers: dict[str, int]) -> None:
+    upward = upward_imports(dego_graph, layers)
+    listing = "\n".join(
+        f"  {a} (layer {layers[unit_of(a, layers)]}) -> {b} (layer {layers[unit_of(b, layers)]})"  # type: ignore[index]
+        for a, b in upward
+    )
+    assert not upward, f"imports back up (docs/architecture.md):\n{listing}"
+
+
+def test_the_outer_layers_are_the_table_s(layers: dict[str, int]) -> None:
+    """The two-layer rule and the table agree: layers 8 and above are :data:`OUTER`."""
+    core = {u for u, layer in layers.items() if layer <= 7}
+    outer = {u for u, layer in layers.items() if layer >= 8}
+    assert all(is_outer(u) for u in outer), sorted(u for u in outer if not is_outer(u))
+    assert not any(is_outer(u) for u in core), sorted(u for u in core if is_outer(u))
+
+
+def test_packages_import_each_other_in_one_direction(dego_graph: Graph) -> None:
+    packages = package_graph(dego_graph)
+    cycles = import_cycles(packages)
+    message = "\n".join(
+        f"{', '.join(c)}: " + ", ".join(f"{a} -> {b}" for a, b in cycle_edges(packages, c))
+        for c in cycles
+    )
+    assert not cycles, f"packages that import each other:\n{message}"
+
+
+def test_modules_are_short_and_the_cli_is_a_table(dego_graph: Graph) -> None:
+    files = module_files(SRC)
+    lines = {m: len(files[m].read_text(encoding="utf-8").splitlines()) for m in dego_graph}
+    long = {m: n for m, n in lines.items() if n > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+    assert lines["dego.cli"] < MAX_CLI_LINES
+
+
+def test_layer_rules_catch_a_planted_arrow_back_up(tmp_path: Path) -> None:
+    page = tmp_path / "architecture.md"
+    page.write_text(
+        "| layer | units | owns |\n| --- | --- | --- |\n"
+        "| 1 | `dego.a`, `dego.b` | x |\n| 2 | `dego.c` | y |\n| 3 | `dego.c.d` | z |\n"
+    )
+    layers = read_layers(page)
+    assert layers == {"dego.a": 1, "dego.b": 1, "dego.c": 2, "dego.c.d": 3}
+    assert unit_of("dego.c.d.e", layers) == "dego.c.d" and unit_of("dego.z", layers) is None
+    graph: Graph = {
+        "dego.a": {"dego.c.x"},  # layer 1 -> layer 2: up
+        "dego.c.x": {"dego.c.d.e", "dego.b"},  # layer 2 -> 3: up; 2 -> 1: down
+        "dego.c.d.e": {"dego.c.x"},  # 3 -> 2: down, but a cycle of packages with the line above
+        "dego.c": set(),
+        "dego.c.d": set(),
+        "dego.b": set(),
+    }
+    assert upward_imports(graph, layers) == [("dego.a", "dego.c.x"), ("dego.c.x", "dego.c.d.e")]
+    assert package_of("dego.c.d.e", graph) == "dego.c.d" and package_of("dego.b", graph) == "dego.b"
+    assert import_cycles(package_graph(graph)) == [["dego.c", "dego.c.d"]]

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dego.cli import main
-from dego.study import (
+from dego.demo.study import (
     METRICS,
     QUICK_STUDY,
     STUDY_VARIANTS,
@@ -51,7 +51,7 @@ def test_roc_auc_matches_brute_force_and_is_antisymmetric(a: list[int], b: list[
 
 
 def test_intervals_from_fewer_than_three_seeds_are_flagged_not_printed() -> None:
-    from dego.study import MIN_INTERVAL_SEEDS
+    from dego.demo.study import MIN_INTERVAL_SEEDS
 
     assert MIN_INTERVAL_SEEDS == 3
     two = mean_interval([0.4, 1.0])  # an AUC-like quantity: the t-interval leaves [0, 1]
@@ -65,7 +65,7 @@ def test_intervals_from_fewer_than_three_seeds_are_flagged_not_printed() -> None
 def made_up_runs(seeds: Iterable[int], mask_step: float = 0.0) -> list[StudyRun]:
     """``static`` and ``decoupled`` runs at budget 10: every score 1, articulated t=±1
     5 + seed and 9 + seed, every mask statistic 0.5 + mask_step * seed."""
-    from dego.study import MASK_METRICS
+    from dego.demo.study import MASK_METRICS
 
     return [
         StudyRun(
@@ -84,7 +84,7 @@ def made_up_runs(seeds: Iterable[int], mask_step: float = 0.0) -> list[StudyRun]
 
 @pytest.mark.parametrize("seeds", [(0, 1), (0, 1, 2)])
 def test_report_flags_too_few_seeds(seeds: tuple[int, ...]) -> None:
-    from dego.study import study_report
+    from dego.demo.study import study_report
 
     runs = made_up_runs(seeds, mask_step=0.1)
     text, payload = study_report(runs, StudyConfig(seeds=seeds, budgets=(10,)))
@@ -98,7 +98,8 @@ def test_report_flags_too_few_seeds(seeds: tuple[int, ...]) -> None:
 
 
 def test_study_help_gives_the_device_and_the_duration_the_docs_give(source_tree: Path) -> None:
-    from dego.cli import STUDY_DURATION, build_parser
+    from dego.cli import build_parser
+    from dego.demo.study.command import STUDY_DURATION
 
     parser = build_parser()
     study = parser._subparsers._group_actions[0].choices["study"]  # type: ignore[union-attr]
@@ -210,17 +211,21 @@ def test_bad_study_arguments_exit_with_a_message(
 QUICK_TEST_VARIANTS = tuple(
     v for v in STUDY_VARIANTS if v not in ("free-offsets", "free-velocities")
 )
+QUICK_TEST_ITERATIONS = 6
 
 
 @pytest.fixture(scope="module")
 def quick_study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("study")
+    # --quick at 6 iterations a fit (--quick's own 20 change no line of the report's
+    # layout): 27 s on one idle core instead of 60-85 s
     command = ["study", "--quick", "--variants", ",".join(QUICK_TEST_VARIANTS)]
+    command += ["--iterations", str(QUICK_TEST_ITERATIONS)]
     result = subprocess.run(
         [sys.executable, "-m", "dego", *command, "--device", "cpu", "--out", str(out)],
         capture_output=True,
         text=True,
-        timeout=1200,  # a hang: the run takes 60-85 s here, several times that under load
+        timeout=1200,  # a hang: the run takes 25-40 s here, several times that under load
     )
     assert result.returncode == 0, result.stderr
     return out, result.stdout
@@ -276,7 +281,7 @@ def test_quick_study_json_holds_every_run(quick_study: tuple[Path, str]) -> None
 
 
 def test_default_study_leaves_out_the_mask_prior_variant() -> None:
-    from dego.study import DEFAULT_STUDY_VARIANTS
+    from dego.demo.study import DEFAULT_STUDY_VARIANTS
 
     assert "decoupled+prior" not in StudyConfig().variants
     assert StudyConfig().variants == DEFAULT_STUDY_VARIANTS
@@ -285,7 +290,7 @@ def test_default_study_leaves_out_the_mask_prior_variant() -> None:
 
 
 def test_paired_report_marks_resolved_signs() -> None:
-    from dego.study import study_report
+    from dego.demo.study import study_report
 
     runs = made_up_runs(range(3))
     text, payload = study_report(runs, StudyConfig(seeds=(0, 1, 2), budgets=(10,)))
@@ -299,7 +304,7 @@ def test_the_plot_draws_intervals_only_where_the_report_gives_them(seeds: int) -
     """Issue 41 (5): with 2 seeds (``--quick``) the report prints n/a; the plot then draws
     no error bars and its title says why, instead of "95% CI" over zero-width bars."""
     pytest.importorskip("matplotlib")
-    from dego.study import MASK_METRICS, study_figure
+    from dego.demo.study import MASK_METRICS, study_figure
 
     runs = [
         StudyRun(

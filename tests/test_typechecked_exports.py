@@ -53,6 +53,7 @@ MODULES = (
     "dego.gaussians",
     "dego.spherical_harmonics",
     "dego.deformation",
+    "dego.losses",
     *(f"dego.compat.{m.name}" for m in pkgutil.iter_modules(dego.compat.__path__)),
 )
 

@@ -1,17 +1,40 @@
-"""Flag parsing and progress output shared by the ``dego`` subcommands (``dego demo``,
-``dego study``, ``dego train``)."""
+"""What the ``dego`` subcommands share: flag types (ints, devices, lists, ``--threads``),
+output folders, the usage error, Ctrl-C handling and the progress bar.
+
+Every command module (:mod:`dego.cli` lists them) imports these from here; nothing here
+imports a command, so the commands sit above this module and never beside each other.
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import os
 import re
+import signal
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TextIO
 
-from dego._atomic import make_output_dir
-from dego.evaluation import command as eval_command
+import torch
+
+from dego._atomic import check_output_file, make_output_dir
+
+INTERRUPTED_STATUS = 130
+"""Exit status after Ctrl-C (128 + SIGINT, as shells report it)."""
+
+
+class UsageError(Exception):
+    """A flag's value found wrong once the work has looked at the data: ``flag`` and a
+    one-line ``message``; :func:`dego.cli.main` reports it as a usage error (exit status 2)."""
+
+    def __init__(self, flag: str, message: str) -> None:
+        super().__init__(f"{flag}: {message}")
+        self.flag, self.message = flag, message
+
 
 MAX_ITERATIONS = 100_000
 """The most optimiser steps ``--iterations`` takes (the full demo takes 150; 100,000 steps
@@ -63,17 +86,95 @@ def clock(seconds: float) -> str:
     return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"
 
 
+def parse_device(text: str) -> str:
+    """A device flag: ``cpu``, ``cuda`` or ``cuda:N`` of a CUDA device that exists here
+    (``torch.device`` spelling); anything else (``meta``, ``mps``, ``cuda`` without CUDA, a
+    missing ``cuda:N``) is an ``ArgumentTypeError``. Returns the device's name."""
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError, TypeError):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}") from None
+    if device.type == "cpu":
+        if device.index not in (None, 0):
+            raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+        return "cpu"
+    if device.type != "cuda":
+        raise argparse.ArgumentTypeError(
+            f"expected cpu, cuda or cuda:N, got {text!r} ({device.type} is not supported)"
+        )
+    if not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(f"{text!r}: CUDA is not available here")
+    count = torch.cuda.device_count()
+    if device.index is not None and device.index >= count:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: this machine has {count} CUDA device(s), cuda:0 .. cuda:{count - 1}"
+        )
+    try:
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as error:
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise argparse.ArgumentTypeError(f"{text!r} is not usable here ({reason})") from None
+    return str(device)
+
+
+def parse_int(text: str) -> int:
+    """An int argument (digits with an optional sign; anything else is an argparse error,
+    which names the flag)."""
+    if not re.fullmatch(r"\s*[+-]?\d+\s*", text):
+        raise argparse.ArgumentTypeError(f"expected an int, got {text!r}")
+    return int(text)
+
+
+def bounded_int(low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an int in ``[low, high]`` (``dego eval`` and the other commands)."""
+
+    def parse(text: str) -> int:
+        value = parse_int(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an int in [{low}, {high}], got {text!r}")
+        return value
+
+    parse.__name__ = "int"
+    return parse
+
+
+MAX_THREADS = 256
+"""The most threads ``--threads`` allows."""
+
+THREADS_HELP = (
+    "CPU threads per process (torch.set_num_threads; default: torch's, one per core). "
+    "On a shared or busy machine 1 is often much faster: torch's threads otherwise wait "
+    "for each other (docs/performance.md, Threads)"
+)
+
+
+def add_threads_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--threads N`` flag of every ``dego`` command that computes."""
+    parser.add_argument(
+        "--threads", type=bounded_int(1, MAX_THREADS), metavar="N", help=THREADS_HELP
+    )
+
+
+def apply_threads(threads: int | None) -> None:
+    """``--threads N``: N threads in this process, and ``OMP_NUM_THREADS=N`` for the
+    processes it starts (``--workers``, subprocesses); ``None`` leaves torch's default."""
+    if threads is None:
+        return
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
+
+
 def add_device(parser: argparse.ArgumentParser) -> None:
     """The ``--device`` and ``--threads`` flags of ``dego demo``, ``dego study`` and
     ``dego train``: checked while parsing, so a device that is not usable here is the
     subcommand's usage error."""
     parser.add_argument(
         "--device",
-        type=eval_command.parse_device,
+        type=parse_device,
         default="cpu",
         help="torch device: cpu, cuda or cuda:N (cpu)",
     )
-    eval_command.add_threads_argument(parser)
+    add_threads_argument(parser)
 
 
 def repeated_values(values: tuple) -> list:
@@ -133,3 +234,39 @@ def output_dir(parser: argparse.ArgumentParser, flag: str, path: Path) -> list[P
         return make_output_dir(path)
     except OSError as error:
         parser.error(f"{flag}: {error.strerror or error}")
+
+
+def rerun_target(parser: argparse.ArgumentParser, path: Path | None) -> list[Path]:
+    """Check ``--rerun`` before any work (rerun-sdk present, a ``.rrd`` file that can be
+    written; its folder is created) or exit with a usage error; returns the folders made."""
+    if path is None:
+        return []
+    if importlib.util.find_spec("rerun") is None:
+        parser.error('--rerun: needs rerun-sdk: pip install "dego-occupancy[rerun]"')
+    if path.suffix != ".rrd":
+        parser.error(f"--rerun: expected a file name ending in .rrd, got {str(path)!r}")
+    try:
+        return check_output_file(path)
+    except OSError as error:
+        parser.error(f"--rerun: {error.strerror or error}")
+
+
+def isatty(stream: TextIO) -> bool:
+    """Whether ``stream`` is a terminal (``False`` for closed or fake streams)."""
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+class SigintIgnored:
+    """Ignore SIGINT inside the block (main thread only), then restore the handler."""
+
+    def __enter__(self) -> None:
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)

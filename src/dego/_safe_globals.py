@@ -18,10 +18,10 @@ _SAFE_NAMES = (
     "dego.splatting.splatter.SplatOutput",
     "dego.splatting.projection.Projection",
     "dego.voxelizer.VoxelOutput",
-    "dego.deformation_results.DeformationOutput",
-    "dego.deformation_results.DeformationDeltas",
-    "dego.deformation_results.DeformationLossWeights",
-    "dego.deformation_results.DeformationLoss",
+    "dego.deformation.results.DeformationOutput",
+    "dego.deformation.results.DeformationDeltas",
+    "dego.deformation.loss.DeformationLossWeights",
+    "dego.deformation.loss.DeformationLoss",
     "dego.grid.VoxelGrid",
     "dego.teacher.factorized.TeacherOutput",
     "dego.metrics.report.OccupancyReport",
@@ -31,10 +31,28 @@ _SAFE_NAMES = (
 by name, so that registering them imports none of their modules."""
 
 _FORMER_NAMES = {
-    f"dego.deformation.{name}": f"dego.deformation_results.{name}"
-    for name in ("DeformationDeltas", "DeformationLossWeights", "DeformationOutput")
+    # in dego.deformation, one module, until it was split (the names the face re-exports now)
+    **{
+        f"dego.deformation.{name}": f"dego.deformation.{module}.{name}"
+        for module, name in [
+            ("results", "DeformationDeltas"),
+            ("loss", "DeformationLossWeights"),
+            ("results", "DeformationOutput"),
+        ]
+    },
+    # in dego.deformation_results, until dego.deformation became a package
+    **{
+        f"dego.deformation_results.{name}": f"dego.deformation.{module}.{name}"
+        for module, name in [
+            ("results", "DeformationDeltas"),
+            ("loss", "DeformationLoss"),
+            ("loss", "DeformationLossWeights"),
+            ("results", "DeformationOutput"),
+        ]
+    },
 }
-"""Where checkpoints saved before a module split name a class (they still load)."""
+"""Where checkpoints saved before a module split name a class (they still load): former
+name -> the class's name in :data:`_SAFE_NAMES`."""
 
 
 @functools.cache

@@ -402,7 +402,7 @@ def test_inferred_depth_is_bounded_but_an_explicit_one_is_not() -> None:
 
 
 def test_expected_official_shapes_match_the_module() -> None:
-    from dego.deformation_checkpoint import _official_shapes
+    from dego.deformation.checkpoint import _official_shapes
 
     for sizes in [SIZES, {**SIZES, "depth": 1, "pos_levels": 0, "feature_dim": 0}]:
         module = DecoupledDeformation(preset="official", head_hidden=sizes["hidden_dim"], **sizes)
@@ -737,11 +737,11 @@ def test_fixed_mask_zero_recipe_moves_only_dynamic_means(preset: str) -> None:
 
 @pytest.mark.parametrize(("extra", "cut"), [(0, False), (1, True)])
 def test_keys_are_cut_beyond_120_characters(extra: int, cut: bool) -> None:
-    from dego import deformation_checkpoint
+    from dego.deformation import checkpoint
 
-    key = "k" * (deformation_checkpoint._KEY_CHARS + extra)
-    assert (deformation_checkpoint._short(key) != key) == cut
-    assert deformation_checkpoint._short(key).startswith("k" * deformation_checkpoint._KEY_CHARS)
+    key = "k" * (checkpoint._KEY_CHARS + extra)
+    assert (checkpoint._short(key) != key) == cut
+    assert checkpoint._short(key).startswith("k" * checkpoint._KEY_CHARS)
 
 
 @pytest.mark.parametrize(("count", "more"), [(20, False), (21, True)])

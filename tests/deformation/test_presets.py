@@ -12,15 +12,16 @@ import pytest
 import torch
 
 import dego
-from dego import deformation_checkpoint, deformation_presets
 from dego.deformation import (
     PARAMETERS,
     DecoupledDeformation,
     DeformationLoss,
+    checkpoint,
     deformation_loss,
+    presets,
     shift_opacity_logit,
 )
-from dego.deformation_presets import PRESETS, official_update, paper_update
+from dego.deformation.presets import PRESETS, official_update, paper_update
 from tests.helpers.deformation import (
     literal_output,
     make_inputs,
@@ -29,13 +30,14 @@ from tests.helpers.deformation import (
     times_tensor,
 )
 
-SRC = Path(dego.__file__).resolve().parent
-DEFORMATION_MODULES = ("deformation", "deformation_checkpoint", "deformation_presets")
+PACKAGE = Path(dego.__file__).resolve().parent / "deformation"
+DEFORMATION_MODULES = ("module", "checkpoint", "presets", "loss", "results")
 
 
 def _imports(module: str) -> set[str]:
-    """Every module that ``dego.<module>`` imports anywhere (lazy and TYPE_CHECKING too)."""
-    tree = ast.parse((SRC / f"{module}.py").read_text())
+    """Every module that ``dego.deformation.<module>`` imports anywhere (lazy and
+    TYPE_CHECKING too)."""
+    tree = ast.parse((PACKAGE / f"{module}.py").read_text())
     names = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -51,12 +53,12 @@ def _imports(module: str) -> set[str]:
 
 
 def test_checkpoint_mapping_does_not_import_the_deformation_module() -> None:
-    for module in ("deformation_checkpoint", "deformation_presets"):
+    for module in ("checkpoint", "presets", "loss"):
         imported = _imports(module)
         assert not any(
             name == "dego.deformation" or name.startswith("dego.deformation.") for name in imported
         ), module
-    text = (SRC / "deformation_checkpoint.py").read_text()
+    text = (PACKAGE / "checkpoint.py").read_text()
     assert "from dego.deformation import" not in text and "TYPE_CHECKING" not in text
 
 
@@ -66,18 +68,24 @@ def test_no_import_cycle_among_the_deformation_modules() -> None:
             other
             for other in DEFORMATION_MODULES
             if other != m
-            and any(n == f"dego.{other}" or n.startswith(f"dego.{other}.") for n in _imports(m))
+            and any(
+                n == f"dego.deformation.{other}" or n.startswith(f"dego.deformation.{other}.")
+                for n in _imports(m)
+            )
         }
         for m in DEFORMATION_MODULES
     }
-    assert graph["deformation"] == {"deformation_checkpoint", "deformation_presets"}
-    assert graph["deformation_checkpoint"] == graph["deformation_presets"] == set()
+    assert graph["module"] == {"checkpoint", "presets", "loss", "results"}
+    assert graph["results"] == {"presets", "loss"}
+    assert graph["checkpoint"] == graph["presets"] == graph["loss"] == set()
+    # none goes through the package's face, which imports them all
+    assert not any("dego.deformation" in _imports(m) for m in DEFORMATION_MODULES)
 
 
 def test_update_rules_are_written_once() -> None:
     """The clamps, the tanh bound and the quaternion composition appear in the presets
     module only."""
-    text = (SRC / "deformation.py").read_text()
+    text = (PACKAGE / "module.py").read_text()
     for fragment in ("quaternion_product", "unit_quaternions", "torch.tanh", ".clamp(-"):
         assert fragment not in text, fragment
     assert {spec.name for spec in PRESETS.values()} == set(PRESETS) == {"paper", "official"}
@@ -150,7 +158,7 @@ def test_update_rules_and_shift_are_type_checked() -> None:
         official_update(base, {}, torch.zeros(1, 4).double())
     with pytest.raises(TypeError, match="opacity"):
         shift_opacity_logit(torch.zeros(3, dtype=torch.long), torch.zeros(3))
-    assert shift_opacity_logit is deformation_presets.shift_opacity_logit
+    assert shift_opacity_logit is presets.shift_opacity_logit
 
 
 # -- DeformationLoss ------------------------------------------------------------------------
@@ -204,15 +212,13 @@ def test_dict_access_still_works_and_warns() -> None:
 def test_key_mapping_round_trips_without_a_module() -> None:
     module = make_module("official", depth=3)
     ours = dict(module.named_parameters())
-    official = deformation_checkpoint.official_tensors(ours, module.pos_levels, module.time_levels)
+    official = checkpoint.official_tensors(ours, module.pos_levels, module.time_levels)
     assert list(official) == list(module.to_official_state_dict())
-    back = deformation_checkpoint.from_official_tensors(
-        official, module.input_static.in_features, depth=3
-    )
+    back = checkpoint.from_official_tensors(official, module.input_static.in_features, depth=3)
     assert set(back) == set(ours)
     for name, value in back.items():
         assert torch.equal(value, ours[name]), name
-    assert deformation_checkpoint.official_names(3)["feature_net.4.weight"] == "trunk.2.weight"
+    assert checkpoint.official_names(3)["feature_net.4.weight"] == "trunk.2.weight"
 
 
 def test_checkpoint_warnings_point_at_the_caller() -> None:

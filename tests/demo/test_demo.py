@@ -16,16 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dego import SyntheticScene
-from dego.cli import (
-    BUDGETS,
-    DEMO_VARIANTS,
-    GAINS_HEADING,
-    LIFTED_ROW,
-    PICTURED_VARIANTS,
-    TABLE_GUIDE,
-    ProgressBar,
-    main,
-)
+from dego._cli_args import ProgressBar
+from dego.cli import main
 from dego.demo import (
     OFFSET_GROUPS,
     ROW_NAMES,
@@ -43,9 +35,16 @@ from dego.demo import (
     predict_labels,
     rigidity_mask,
     score_labels,
-    weak_losses,
 )
-from dego.splatting import SplatOutput
+from dego.demo.command import (
+    BUDGETS,
+    DEMO_VARIANTS,
+    GAINS_HEADING,
+    LIFTED_ROW,
+    PICTURED_VARIANTS,
+    TABLE_GUIDE,
+)
+from dego.losses import depth_loss, rendering_loss, semantic_loss
 from tests.helpers.repo import ROOT
 
 PICTURES = [f"bev_{variant}.png" for variant in PICTURED_VARIANTS] + [
@@ -128,7 +127,7 @@ def test_demo_command_writes_the_table_results_and_pictures(tmp_path: Path) -> N
 
     # `dego study` at the demo's budget fits exactly what the demo fits (docs/demo.md's
     # tables over seeds come from it): the decoupled variant, which has every part
-    from dego.study import StudyConfig, run_study
+    from dego.demo.study import StudyConfig, run_study
 
     config = StudyConfig(
         seeds=(0,), budgets=(1000,), frames=3, iterations=30, variants=("decoupled",)
@@ -292,43 +291,34 @@ def test_nearest_neighbour_distance_of_a_single_point_is_one() -> None:
     assert nearest_neighbour_distance(torch.zeros(1, 3)).tolist() == [1.0]
 
 
-def rendered(features: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor) -> SplatOutput:
-    v = features.shape[0]
-    return SplatOutput(
-        features=features[None],
-        depth=depth[None],
-        alpha=alpha[None],
-        radii=torch.zeros(1, v, 0, dtype=torch.int32),
-    )
-
-
-def test_weak_losses_analytic_cases() -> None:
+def test_demo_losses_analytic_cases() -> None:
+    """The demo's 2D losses (dego.losses on one frame, B = 1) on hand-made renders."""
     v, h, w = 2, 3, 4
-    labels = torch.randint(0, 17, (v, h, w), generator=torch.Generator().manual_seed(0))
-    labels[0, 0] = 17  # a row of sky
+    labels = torch.randint(0, 17, (1, v, h, w), generator=torch.Generator().manual_seed(0))
+    labels[0, 0, 0] = 17  # a row of sky
     depth = torch.where(labels == 17, 0.0, 10.0)
-    everything = torch.ones(v, h, w, dtype=torch.bool)
+    everything = torch.ones(1, v, h, w, dtype=torch.bool)
 
     # Opaque, exactly right: zero loss.
-    one_hot = torch.nn.functional.one_hot(labels.clamp_max(16), 17).permute(0, 3, 1, 2).float()
+    one_hot = torch.nn.functional.one_hot(labels.clamp_max(16), 17).permute(0, 1, 4, 2, 3)
     alpha = (labels != 17).float()
-    exact = rendered(one_hot * alpha[:, None], alpha, depth)
-    losses = weak_losses(exact, depth, labels, everything)
-    assert float(losses["semantics"]) == pytest.approx(0.0, abs=1e-6)
-    assert float(losses["depth"]) == 0.0
+    losses = rendering_loss(
+        one_hot.float() * alpha[:, :, None], alpha, depth, labels, depth, everything
+    )
+    assert float(losses.semantic) == pytest.approx(0.0, abs=1e-6)
+    assert float(losses.depth) == 0.0
 
     # Nothing rendered: free space is certain, sky costs nothing, surfaces cost -log(1e-6).
-    empty = rendered(torch.zeros(v, 17, h, w), torch.zeros(v, h, w), torch.zeros(v, h, w))
-    losses = weak_losses(empty, depth, labels, everything)
+    nothing, empty = torch.zeros(1, v, 17, h, w), torch.zeros(1, v, h, w)
     surfaces = float((labels != 17).float().mean())
-    assert float(losses["semantics"]) == pytest.approx(-math.log(1e-6) * surfaces, rel=1e-5)
-    assert float(losses["depth"]) == pytest.approx(10.0)
+    semantic = semantic_loss(nothing, empty, labels, everything)
+    assert float(semantic) == pytest.approx(-math.log(1e-6) * surfaces, rel=1e-5)
+    assert float(depth_loss(empty, depth, everything)) == pytest.approx(10.0)
 
     # Only supervised pixels count; no supervised depth gives a zero depth term.
     sky_only = labels == 17
-    losses = weak_losses(empty, depth, labels, sky_only)
-    assert float(losses["semantics"]) == pytest.approx(0.0, abs=1e-6)
-    assert float(losses["depth"]) == 0.0
+    assert float(semantic_loss(nothing, empty, labels, sky_only)) == pytest.approx(0.0, abs=1e-6)
+    assert float(depth_loss(empty, depth, sky_only)) == 0.0
 
 
 def test_gradients_reach_every_parameter(clip: DemoClip) -> None:
@@ -343,13 +333,17 @@ def test_gradients_reach_every_parameter(clip: DemoClip) -> None:
     assert terms is not None and gaussians.batch_shape == (1,)
     from dego.demo import render
 
-    losses = weak_losses(
-        render(gaussians, clip, index),
-        clip.depth[index],
-        clip.semantics[index],
-        clip.supervised[index],
+    rendered = render(gaussians, clip, index)
+    assert rendered.depth is not None
+    losses = rendering_loss(
+        rendered.features,
+        rendered.alpha,
+        rendered.depth,
+        clip.semantics[index][None],
+        clip.depth[index][None],
+        clip.supervised[index][None],
     )
-    (losses["semantics"] + losses["depth"] + terms["total"]).backward()
+    (losses.semantic + losses.depth + terms["total"]).backward()
     for name, param in [*model.named_parameters(), *deformation.named_parameters()]:
         assert param.grad is not None and torch.isfinite(param.grad).all(), name
     for name, param in model.named_parameters():
@@ -464,12 +458,12 @@ def test_cuda_device_is_refused_without_cuda(capsys: pytest.CaptureFixture[str])
 def test_one_frame_is_refused_with_its_reason(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    import dego.cli
+    import dego.demo.command
 
     def started(*args: object, **kwargs: object) -> int:
         raise AssertionError("the demo started with one frame")
 
-    monkeypatch.setattr(dego.cli, "run_demo", started)
+    monkeypatch.setattr(dego.demo.command, "run_demo", started)
     with pytest.raises(SystemExit) as exit_info:
         main(["demo", "--frames", "1"])
     assert exit_info.value.code == 2
@@ -486,7 +480,8 @@ def test_budgets() -> None:
 def test_help_states_the_budgets_and_durations_that_the_demo_page_states(
     source_tree: Path,
 ) -> None:
-    from dego.cli import DURATIONS, build_parser, describe_budget
+    from dego.cli import build_parser
+    from dego.demo.command import DURATIONS, describe_budget
 
     parser = build_parser()
     top = " ".join(parser.format_help().split())
@@ -539,7 +534,8 @@ def test_demo_runs_on_cuda(tmp_path: Path) -> None:
 
 
 def test_documented_budgets_come_from_the_code(source_tree: Path) -> None:
-    from dego.cli import build_parser, describe_budget
+    from dego.cli import build_parser
+    from dego.demo.command import describe_budget
 
     for page in (source_tree / "README.md", source_tree / "docs" / "demo.md"):
         text = " ".join(page.read_text().split())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -20,7 +21,7 @@ from dego.demo.feedforward.study import (
     FeedForwardStudyConfig,
     feedforward_report,
 )
-from dego.study import StudyRun
+from dego.demo.stats import StudyRun
 
 
 @pytest.fixture
@@ -77,9 +78,7 @@ def test_an_unwritable_cache_or_out_is_a_usage_error(
 
 
 def test_presets_and_flags_make_the_study_asked_for() -> None:
-    parser = command.add_train_parser.__globals__["argparse"].ArgumentParser()
-    subparsers = parser.add_subparsers()
-    train = command.add_train_parser(subparsers)
+    train = command.add_arguments(argparse.ArgumentParser())
     args = train.parse_args(["--full", "--steps", "7", "--variants", "static,decoupled"])
     config = command.study_config(args)
     assert config.seeds == PRESETS["full"].seeds and len(config.seeds) >= 3

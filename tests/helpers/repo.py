@@ -60,6 +60,7 @@ def source_params(
 
 SLOW_MARKER = (
     "slow: a case over ~0.3 s (subprocess, example, notebook, fit, compile, big gradcheck); "
-    'left out of the quick run `pytest -m "not slow"`, part of the default run and of CI'
+    "left out of the default run `pytest` (the fast set), run with `pytest -m slow`; CI runs "
+    "both"
 )
 """The ``slow`` marker's description, as pyproject.toml registers it (a test checks)."""

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-import dego.cli
+import dego.demo.command
 from dego import NUM_CLASSES
 from dego.cli import main
 from tests.helpers.cli_faults import usage_error
@@ -28,7 +28,7 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
 
     from dego.evaluation import command
 
-    monkeypatch.setattr(dego.cli, "run_demo", started)
+    monkeypatch.setattr(dego.demo.command, "run_demo", started)
     monkeypatch.setattr(command, "evaluate", started)
 
 

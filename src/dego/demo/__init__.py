@@ -42,7 +42,6 @@ from dego.demo.fit import (
     render,
     rigidity_mask,
     row_name,
-    weak_losses,
 )
 from dego.demo.model import (
     ALLOCATIONS,
@@ -116,5 +115,4 @@ __all__ = [
     "score_labels",
     "to_ego",
     "true_motion",
-    "weak_losses",
 ]

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from typing import Literal
 
 import torch
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Float
 from torch import Tensor
 
 from dego._checks import check_int, check_positive
@@ -27,6 +27,7 @@ from dego.demo.model import (
 )
 from dego.demo.offsets import FrameOffsets, free_offsets, free_velocities, true_motion
 from dego.gaussians import GaussianSet
+from dego.losses import depth_loss, semantic_loss
 from dego.splatting import SplatOutput, splat
 
 Variant = Literal[
@@ -353,33 +354,6 @@ def render(
     return splat(gaussians, world_to_cam, intrinsics, clip.image_size)
 
 
-def weak_losses(
-    rendered: SplatOutput,
-    depth: Float[Tensor, "V H W"],
-    semantics: Int[Tensor, "V H W"],
-    supervised: Bool[Tensor, "V H W"],
-) -> dict[str, Tensor]:
-    """Cross-entropy on semantics and L1 on depth against one frame's pseudo labels.
-
-    The rendered class probabilities sum to the pixel's alpha; the transparency
-    ``1 - alpha`` is the probability of free space (label 17), so the 18 values are a
-    distribution and sky pixels teach the Gaussians to stay out of the way. Depth (the
-    alpha-normalised expected depth) is compared where the pseudo depth is positive.
-    """
-    probabilities = torch.cat(
-        [rendered.features[0], (1 - rendered.alpha[0])[:, None]], 1
-    )  # (V, 18, H, W)
-    picked = probabilities.gather(1, semantics[:, None]).squeeze(1)
-    semantic = -picked.clamp_min(1e-6).log()[supervised].mean()
-    with_depth = supervised & (depth > 0)
-    assert rendered.depth is not None
-    depth_error = (rendered.depth[0] - depth).abs()[with_depth]
-    return {
-        "semantics": semantic,
-        "depth": depth_error.mean() if depth_error.numel() else depth.new_zeros(()),
-    }
-
-
 def fit_iterations(variant: Variant, config: FitConfig, clip: DemoClip) -> int:
     """Optimiser steps :func:`fit_scene` takes: ``config.iterations``, or for
     ``single-frame`` the reference frame's share of them, ``round(iterations / T)``."""
@@ -401,8 +375,10 @@ def fit_scene(
     Each iteration renders one frame (a seeded shuffled cycle over the clip; only the
     reference frame for ``single-frame``, for ``round(iterations / T)`` steps) into its
     cameras and minimises ``semantics + depth_weight * depth + deformation_weight *
-    deformation``. ``scene``: the clip's :class:`~dego.data.SyntheticScene`, needed by the
-    ``true-motion`` oracle only. ``progress(iteration, losses)`` is called after every step.
+    deformation`` (:func:`~dego.losses.semantic_loss` and :func:`~dego.losses.depth_loss`
+    against the frame's pseudo labels, :func:`~dego.deformation.deformation_loss`).
+    ``scene``: the clip's :class:`~dego.data.SyntheticScene`, needed by the ``true-motion``
+    oracle only. ``progress(iteration, losses)`` is called after every step.
     """
     config = config or FitConfig()
     generator = torch.Generator().manual_seed(config.seed)
@@ -479,13 +455,16 @@ def _frame_losses(
     cameras = None
     if config.cameras_per_step is not None and config.cameras_per_step < num_cameras:
         cameras = torch.randperm(num_cameras, generator=generator)[: config.cameras_per_step]
-    losses = weak_losses(
-        render(gaussians, clip, index, cameras),
-        *(
-            x[index] if cameras is None else x[index][cameras.to(x.device)]
-            for x in (clip.depth, clip.semantics, clip.supervised)
-        ),
+    rendered = render(gaussians, clip, index, cameras)
+    depth, semantics, supervised = (
+        x[index][None] if cameras is None else x[index][cameras.to(x.device)][None]
+        for x in (clip.depth, clip.semantics, clip.supervised)
     )
+    assert rendered.depth is not None
+    losses = {
+        "semantics": semantic_loss(rendered.features, rendered.alpha, semantics, supervised),
+        "depth": depth_loss(rendered.depth, depth, supervised),
+    }
     losses["deformation"] = (
         deformation_terms["total"] if deformation_terms else losses["depth"].new_zeros(())
     )

@@ -1,14 +1,13 @@
 """The demo's pictures: BEV prediction vs ground truth, one camera's renders, loss curves.
 
 Needs matplotlib (``pip install "dego-occupancy[viz]"``). Each ``*_figure`` function
-draws a Figure; :func:`png_bytes` encodes one, so that ``dego demo`` writes its pictures
-with its results, all or nothing (:func:`dego._atomic.write_files`); each ``*_picture``
-function writes one PNG file atomically.
+draws a Figure; :func:`png_bytes` (from :mod:`dego.viz`) encodes one, so that ``dego demo``
+writes its pictures with its results, all or nothing (:func:`dego._atomic.write_files`);
+each ``*_picture`` function writes one PNG file atomically.
 """
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Any
 
@@ -23,17 +22,9 @@ from dego.data.synthetic import CAMERAS
 from dego.demo.clip import DemoClip
 from dego.demo.fit import LOSS_TERMS, FitResult, gaussians_at, render
 from dego.metrics import OccupancyMetrics
-from dego.viz import colorize_labels, compare_bev, new_figure
+from dego.viz import colorize_labels, compare_bev, new_figure, png_bytes
 
 CAMERA = 0  # CAM_FRONT
-DPI = 80
-
-
-def png_bytes(figure: Any, dpi: float = DPI) -> bytes:
-    """``figure`` (a matplotlib Figure) encoded as a PNG."""
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=dpi)
-    return buffer.getvalue()
 
 
 def bev_picture(

@@ -12,14 +12,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
-import torch
-
 from dego._atomic import check_output_file, remove_empty_dirs, write_files
+from dego._cli_args import (
+    MAX_THREADS,
+    add_threads_argument,
+    apply_threads,
+    bounded_int,
+    parse_device,
+)
 from dego.classes import FREE_LABEL
 from dego.evaluation.errors import EvaluationSetupError, EvaluationWorkerError
 from dego.evaluation.run import MISSING_POLICIES, PROTOCOL_CHOICES, evaluate
@@ -67,84 +70,6 @@ def parse_classes(text: str) -> tuple[int, ...]:
     if not out:
         raise argparse.ArgumentTypeError(f"expected class ids like 1-11,13-16, got {text!r}")
     return tuple(out)
-
-
-def parse_device(text: str) -> str:
-    """A device flag: ``cpu``, ``cuda`` or ``cuda:N`` of a CUDA device that exists here
-    (``torch.device`` spelling); anything else (``meta``, ``mps``, ``cuda`` without CUDA, a
-    missing ``cuda:N``) is an ``ArgumentTypeError``. Returns the device's name."""
-    try:
-        device = torch.device(text)
-    except (RuntimeError, ValueError, TypeError):
-        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}") from None
-    if device.type == "cpu":
-        if device.index not in (None, 0):
-            raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
-        return "cpu"
-    if device.type != "cuda":
-        raise argparse.ArgumentTypeError(
-            f"expected cpu, cuda or cuda:N, got {text!r} ({device.type} is not supported)"
-        )
-    if not torch.cuda.is_available():
-        raise argparse.ArgumentTypeError(f"{text!r}: CUDA is not available here")
-    count = torch.cuda.device_count()
-    if device.index is not None and device.index >= count:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: this machine has {count} CUDA device(s), cuda:0 .. cuda:{count - 1}"
-        )
-    try:
-        torch.empty(0, device=device)
-    except (RuntimeError, AssertionError) as error:
-        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise argparse.ArgumentTypeError(f"{text!r} is not usable here ({reason})") from None
-    return str(device)
-
-
-def parse_int(text: str) -> int:
-    """An int argument (digits with an optional sign; anything else is an argparse error,
-    which names the flag)."""
-    if not re.fullmatch(r"\s*[+-]?\d+\s*", text):
-        raise argparse.ArgumentTypeError(f"expected an int, got {text!r}")
-    return int(text)
-
-
-def bounded_int(low: int, high: int) -> Callable[[str], int]:
-    """An argparse type: an int in ``[low, high]`` (``dego eval`` and the other commands)."""
-
-    def parse(text: str) -> int:
-        value = parse_int(text)
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"expected an int in [{low}, {high}], got {text!r}")
-        return value
-
-    parse.__name__ = "int"
-    return parse
-
-
-MAX_THREADS = 256
-"""The most threads ``--threads`` allows."""
-
-THREADS_HELP = (
-    "CPU threads per process (torch.set_num_threads; default: torch's, one per core). "
-    "On a shared or busy machine 1 is often much faster: torch's threads otherwise wait "
-    "for each other (docs/performance.md, Threads)"
-)
-
-
-def add_threads_argument(parser: argparse.ArgumentParser) -> None:
-    """The ``--threads N`` flag of every ``dego`` command that computes."""
-    parser.add_argument(
-        "--threads", type=bounded_int(1, MAX_THREADS), metavar="N", help=THREADS_HELP
-    )
-
-
-def apply_threads(threads: int | None) -> None:
-    """``--threads N``: N threads in this process, and ``OMP_NUM_THREADS=N`` for the
-    processes it starts (``--workers``, subprocesses); ``None`` leaves torch's default."""
-    if threads is None:
-        return
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    torch.set_num_threads(threads)
 
 
 class _NotTheNuScenesVersion(argparse.Action):
@@ -245,6 +170,13 @@ def run(args: argparse.Namespace, *, created: list[Path] | None = None) -> int:
     return code
 
 
+def run_command(
+    args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
+) -> int:
+    """``dego eval`` as a subcommand of ``dego`` (:mod:`dego.cli`): :func:`run`."""
+    return run(args, created=created)
+
+
 def _check_reports(args: argparse.Namespace, created: list[Path]) -> str | None:
     """Why ``--json`` / ``--markdown`` cannot be written (one line), or ``None``."""
     paths = {flag: path for flag, path in (("--json", args.json), ("--markdown", args.markdown))}
@@ -331,4 +263,5 @@ __all__ = [
     "parse_classes",
     "parse_device",
     "run",
+    "run_command",
 ]

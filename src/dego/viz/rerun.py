@@ -42,10 +42,11 @@ from dego._atomic import check_output_file, temporary_name
 from dego._checks import check_int, check_positive
 from dego._typing import typechecked
 from dego.classes import CLASS_NAMES, FREE_LABEL, NUM_CLASSES, PALETTE
-from dego.deformation_results import DeformationOutput
+from dego.deformation import DeformationOutput
 from dego.gaussians import GaussianSet, normalize_quaternions
 from dego.grid import VoxelGrid
-from dego.viz import _label_tensor, bev_labels, colorize_labels
+from dego.viz._labels import _label_tensor
+from dego.viz.colors import bev_labels, colorize_labels
 
 if TYPE_CHECKING:
     from rerun import RecordingStream

@@ -1,4 +1,5 @@
-"""``dego train``: the command line of the feed-forward study (:mod:`.study`)."""
+"""``dego train``: the argparse definition and the main of the subcommand (the work is the
+feed-forward study, :mod:`dego.demo.feedforward.study`)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from dego._cli_args import (
     MAX_ITERATIONS,
     ProgressBar,
     add_device,
+    bounded_int,
     format_ints,
     int_list,
     name_list,
@@ -29,9 +31,8 @@ from dego.demo.feedforward.study import (
     write_feedforward_study,
 )
 from dego.demo.feedforward.training import FEEDFORWARD_VARIANTS
-from dego.evaluation import command as eval_command
 
-TRAIN_DESCRIPTION = (
+DESCRIPTION = (
     "The paper's regime in miniature: one small CNN predicts a Gaussian per image block of "
     "six cameras for every synthetic scene, trained from pseudo labels only with dego's "
     "splatting and weak losses, as single-frame, static, rigid, decoupled (DeGO) and the "
@@ -51,15 +52,12 @@ MAX_SCENES = 10_000
 """The most scenes per split ``--train-scenes`` / ``--heldout-scenes`` take."""
 
 
-def add_train_parser(commands: Any) -> argparse.ArgumentParser:
-    """Add ``dego train`` to the ``dego`` command's subparsers."""
+EPILOG = f"How long: {TRAIN_DURATION}."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dego train`` (on an existing (sub)parser)."""
     default, quick, full = PRESETS["cpu"], PRESETS["quick"], PRESETS["full"]
-    parser = commands.add_parser(
-        "train",
-        help="train a feed-forward Gaussian network on many scenes, with and without deformation",
-        description=TRAIN_DESCRIPTION,
-        epilog=f"How long: {TRAIN_DURATION}.",
-    )
     size = parser.add_mutually_exclusive_group()
     size.add_argument(
         "--quick",
@@ -81,17 +79,17 @@ def add_train_parser(commands: Any) -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--steps",
-        type=eval_command.bounded_int(0, MAX_ITERATIONS),
+        type=bounded_int(0, MAX_ITERATIONS),
         help=f"optimiser steps per variant ({default.train.steps})",
     )
     parser.add_argument(
         "--train-scenes",
-        type=eval_command.bounded_int(1, MAX_SCENES),
+        type=bounded_int(1, MAX_SCENES),
         help=f"training scenes per seed ({default.data.train_scenes})",
     )
     parser.add_argument(
         "--heldout-scenes",
-        type=eval_command.bounded_int(1, MAX_SCENES),
+        type=bounded_int(1, MAX_SCENES),
         help=f"held-out scenes per seed ({default.data.heldout_scenes})",
     )
     add_device(parser)
@@ -106,7 +104,6 @@ def add_train_parser(commands: Any) -> argparse.ArgumentParser:
         "--out", type=Path, default=Path("dego-train"), help="output folder (./dego-train)"
     )
     parser.add_argument("--no-pictures", action="store_true", help="skip the pictures")
-    parser.set_defaults(command_parser=parser)
     return parser
 
 
@@ -130,7 +127,7 @@ def study_config(args: argparse.Namespace) -> FeedForwardStudyConfig:
     return dataclasses.replace(base, **changes)
 
 
-def train_main(
+def run_command(
     args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
 ) -> int:
     """``dego train``: check the flags, create ``--out`` and the cache, run, write."""

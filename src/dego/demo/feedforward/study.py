@@ -31,13 +31,13 @@ from dego.demo.feedforward.data import (
 from dego.demo.feedforward.evaluate import SCORES, predict_scene_labels, score_scenes
 from dego.demo.feedforward.training import FEEDFORWARD_VARIANTS, TrainConfig, predict, train
 from dego.demo.fit import row_name
-from dego.study import (
+from dego.demo.stats import (
     MIN_INTERVAL_SEEDS,
     Interval,
     StudyRun,
-    _json_safe,
     check_distinct,
     check_seeds,
+    json_safe,
     mean_interval,
     paired_differences,
 )
@@ -106,7 +106,7 @@ PICTURED_SCENE = 0
 
 @dataclasses.dataclass
 class FeedForwardRuns:
-    """What :func:`run_feedforward_study` returns: one :class:`~dego.study.StudyRun` per
+    """What :func:`run_feedforward_study` returns: one :class:`~dego.demo.stats.StudyRun` per
     (seed, variant), its ``budget`` the Gaussians per scene, and the first seed's labels of
     the pictured held-out scene per variant (with that scene) for pictures."""
 
@@ -332,7 +332,7 @@ def write_feedforward_study(
     text, payload = feedforward_report(result, config, wall_seconds=wall_seconds, device=device)
     files: dict[Path, str | bytes] = {
         out / "train.md": text,
-        out / "train.json": json.dumps(_json_safe(payload), indent=1) + "\n",
+        out / "train.json": json.dumps(json_safe(payload), indent=1) + "\n",
     }
     if pictures and result.pictured_scene is not None:
         try:

@@ -6,8 +6,9 @@ but ``single-frame``) at one other frame, drawn at random: there the Gaussians a
 ``static`` (as predicted), moved by the deformation network on the network's latents
 (``rigid``: position offsets only; ``decoupled``: DeGO's rigid / nonrigid mask), or moved
 with the ground-truth agent they sit on (``true-motion``, an oracle for analysis). The loss
-is :func:`~dego.demo.weak_losses` against each rendered frame's pseudo labels, averaged over
-the frames, plus the deformation's regulariser.
+is :func:`~dego.losses.semantic_loss` + ``depth_weight *`` :func:`~dego.losses.depth_loss`
+against each rendered frame's pseudo labels, averaged over the frames, plus the
+deformation's regulariser.
 """
 
 from __future__ import annotations
@@ -25,10 +26,11 @@ from dego._checks import check_int, check_positive
 from dego.deformation import DecoupledDeformation, deformation_loss
 from dego.demo.feedforward.data import SceneRecord
 from dego.demo.feedforward.network import GaussianPredictor, Prediction
-from dego.demo.fit import MAX_SEED, most_likely_in, weak_losses
+from dego.demo.fit import MAX_SEED, most_likely_in
 from dego.demo.model import MOVABLE_CLASSES
 from dego.demo.offsets import agent_offsets, agent_under
 from dego.gaussians import GaussianSet
+from dego.losses import depth_loss, semantic_loss
 from dego.splatting import splat
 
 FeedForwardVariant = Literal["single-frame", "static", "rigid", "decoupled", "true-motion"]
@@ -200,16 +202,14 @@ def step_loss(
             record.intrinsics[index][cameras][None],
             record.image_size,
         )
-        losses = weak_losses(
-            rendered,
-            record.depth[index][cameras],
-            record.semantics[index][cameras],
-            record.supervised[index][cameras],
+        supervised = record.supervised[index][cameras][None]
+        assert rendered.depth is not None
+        semantic = semantic_loss(
+            rendered.features, rendered.alpha, record.semantics[index][cameras][None], supervised
         )
+        depth = depth_loss(rendered.depth, record.depth[index][cameras][None], supervised)
         total = total + (
-            losses["semantics"]
-            + config.depth_weight * losses["depth"]
-            + config.deformation_weight * regulariser
+            semantic + config.depth_weight * depth + config.deformation_weight * regulariser
         )
     return total / len(frames)
 

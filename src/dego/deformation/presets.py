@@ -3,8 +3,8 @@
 One table, :data:`PRESETS`, selected by name: per preset, its update rule (how the MLP
 outputs become the deformed means, quaternions, scales and opacities, and the applied
 deltas that :func:`dego.deformation_loss` regularises) and the structural choices of the
-network and of the losses. :mod:`dego.deformation` reads everything preset-specific from
-here; nothing here imports it.
+network and of the losses. :mod:`dego.deformation.module` reads everything
+preset-specific from here; nothing here imports another module of the package.
 """
 
 from __future__ import annotations

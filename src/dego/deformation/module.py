@@ -1,9 +1,10 @@
-"""Decoupled rigid / nonrigid Gaussian deformation over time (DeGO section 4.1).
+"""The deformation network, :class:`DecoupledDeformation` (DeGO section 4.1), and the
+input checks it shares with the porting adapters (:func:`canonical_batch`,
+:func:`check_like_gaussians`).
 
-A canonical Gaussian set at t = 0 is deformed to T time offsets by one MLP pass over all
-(Gaussian, time) pairs. Each Gaussian i has a rigidity mask m_i in [0, 1] (1 = nonrigid)
-and the update is ``dG = (1 - m) dG_rig + m dG_def`` with ``dG_rig = (d_mu_rig, 0, 0, 0)``
-and ``dG_def = (d_mu_def, d_rot, d_scale, d_opacity)``.
+The preset-specific parts come from :mod:`dego.deformation.presets`, the official
+checkpoint key mapping from :mod:`dego.deformation.checkpoint`, the result and loss types
+from :mod:`dego.deformation.results` and :mod:`dego.deformation.loss`.
 """
 
 from __future__ import annotations
@@ -20,31 +21,16 @@ from torch import Tensor, nn
 from dego._checks import check_int, check_positive
 from dego._policy import finite_check, float32_under_autocast, run_checks
 from dego._typing import typechecked
-from dego.deformation_checkpoint import (
-    OFFICIAL_CHECKPOINT_PREFIX,
-    StateDictMismatchError,
+from dego.deformation.checkpoint import (
     from_official_tensors,
     official_state_dict,
     read_official_state_dict,
 )
-from dego.deformation_presets import (
-    MAX_LOG_SCALE_CHANGE,
-    PARAMETERS,
-    PRESETS,
-    Preset,
-    PresetSpec,
-    shift_opacity_logit,
-)
-from dego.deformation_results import (
-    REDUCTIONS,
-    DeformationDeltas,
-    DeformationLoss,
-    DeformationLossWeights,
-    DeformationOutput,
-    deformation_loss,
-)
+from dego.deformation.loss import DeformationLossWeights
+from dego.deformation.presets import PARAMETERS, PRESETS, Preset, PresetSpec
+from dego.deformation.results import DeformationDeltas, DeformationOutput
 from dego.encoding import positional_encoding
-from dego.gaussians import GaussianSet, quaternion_multiply
+from dego.gaussians import GaussianSet
 from dego.grid import VoxelGrid
 
 _CPU_CHUNK_ROWS = 4096  # (Gaussian, time) rows per feature-net chunk on CPU: cache-sized
@@ -113,10 +99,10 @@ class DecoupledDeformation(nn.Module):
       ``rigid_offset`` (3), ``nonrigid_offset`` (3), ``rotation`` (4), ``scale`` (3),
       ``opacity`` (1) and the mask logit (1).
 
-    Presets (one :class:`~dego.deformation_presets.PresetSpec` each, in
-    :data:`dego.deformation_presets.PRESETS`; the update rules are
-    :func:`~dego.deformation_presets.paper_update` and
-    :func:`~dego.deformation_presets.official_update`):
+    Presets (one :class:`~dego.deformation.presets.PresetSpec` each, in
+    :data:`dego.deformation.presets.PRESETS`; the update rules are
+    :func:`~dego.deformation.presets.paper_update` and
+    :func:`~dego.deformation.presets.official_update`):
 
     ``"paper"`` (default), the method as written, with positivity-preserving updates:
         - m is per Gaussian and time-independent: ``sigmoid(mask_net([f, PE_p(mu)]))``;
@@ -243,7 +229,7 @@ class DecoupledDeformation(nn.Module):
 
     @property
     def spec(self) -> PresetSpec:
-        """The preset's :class:`~dego.deformation_presets.PresetSpec`."""
+        """The preset's :class:`~dego.deformation.presets.PresetSpec`."""
         return PRESETS[self.preset]
 
     @typechecked
@@ -508,18 +494,4 @@ class DecoupledDeformation(nn.Module):
         )
 
 
-__all__ = [
-    "MAX_LOG_SCALE_CHANGE",
-    "OFFICIAL_CHECKPOINT_PREFIX",
-    "PARAMETERS",
-    "REDUCTIONS",
-    "DecoupledDeformation",
-    "DeformationDeltas",
-    "DeformationLoss",
-    "DeformationLossWeights",
-    "DeformationOutput",
-    "StateDictMismatchError",
-    "deformation_loss",
-    "quaternion_multiply",
-    "shift_opacity_logit",
-]
+__all__ = ["DecoupledDeformation", "canonical_batch", "check_like_gaussians"]
