@@ -17,7 +17,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TextIO
+from typing import NoReturn, TextIO
 
 import torch
 
@@ -234,6 +234,13 @@ def output_dir(parser: argparse.ArgumentParser, flag: str, path: Path) -> list[P
         return make_output_dir(path)
     except OSError as error:
         parser.error(f"{flag}: {error.strerror or error}")
+
+
+def config_error(parser: argparse.ArgumentParser, error: ValueError) -> NoReturn:
+    """A config's ``ValueError`` (``"field_name: message"``) as the usage error of its flag,
+    ``--field-name: message``; exits with status 2."""
+    field, _, message = str(error).partition(": ")
+    parser.error(f"--{field.replace('_', '-')}: {message or error}")
 
 
 def rerun_target(parser: argparse.ArgumentParser, path: Path | None) -> list[Path]:

@@ -17,6 +17,7 @@ from dego._cli_args import (
     ProgressBar,
     add_device,
     bounded_int,
+    config_error,
     format_ints,
     int_list,
     name_list,
@@ -134,8 +135,7 @@ def run_command(
     try:
         config = study_config(args)
     except ValueError as error:
-        field, _, message = str(error).partition(": ")
-        parser.error(f"--{field.replace('_', '-')}: {message or error}")
+        config_error(parser, error)
     cache = None
     if not args.no_cache:
         cache = args.cache if args.cache is not None else default_cache()

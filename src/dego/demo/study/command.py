@@ -15,6 +15,7 @@ from dego._cli_args import (
     UsageError,
     add_device,
     bounded_int,
+    config_error,
     format_ints,
     int_list,
     name_list,
@@ -106,8 +107,7 @@ def run_command(
     try:
         config = dataclasses.replace(base, **changes)
     except ValueError as error:
-        field, _, message = str(error).partition(": ")
-        parser.error(f"--{field.replace('_', '-')}: {message or error}")
+        config_error(parser, error)
     created += output_dir(parser, "--out", args.out)
     runs = len(config.seeds) * len(config.budgets) * len(config.variants)
     fits = len(config.seeds) * len(config.budgets) * len(set(config.variants) - {"lifted-labels"})
