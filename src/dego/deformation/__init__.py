@@ -17,23 +17,7 @@ the package.
 from __future__ import annotations
 
 # The API is __all__. A name imported as ``x as x`` is not part of it: dego.deformation
-# carried it when it was one module (its imports), and it stays importable from here.
-import math as math
-import warnings as warnings
-from collections.abc import Mapping as Mapping
-from typing import Any as Any
-
-import torch as torch
-from jaxtyping import Float as Float
-from torch import Tensor as Tensor
-from torch import nn as nn
-
-from dego._checks import check_int as check_int
-from dego._checks import check_positive as check_positive
-from dego._policy import finite_check as finite_check
-from dego._policy import float32_under_autocast as float32_under_autocast
-from dego._policy import run_checks as run_checks
-from dego._typing import typechecked as typechecked
+# carried it when it was one module, and it stays importable from here.
 from dego.deformation.checkpoint import OFFICIAL_CHECKPOINT_PREFIX, StateDictMismatchError
 from dego.deformation.checkpoint import from_official_tensors as from_official_tensors
 from dego.deformation.checkpoint import official_state_dict as official_state_dict
@@ -47,10 +31,7 @@ from dego.deformation.presets import PRESETS as PRESETS
 from dego.deformation.presets import Preset as Preset
 from dego.deformation.presets import PresetSpec as PresetSpec
 from dego.deformation.results import DeformationDeltas, DeformationOutput, deformation_loss
-from dego.encoding import positional_encoding as positional_encoding
-from dego.gaussians import GaussianSet as GaussianSet
 from dego.gaussians import quaternion_multiply
-from dego.grid import VoxelGrid as VoxelGrid
 
 __all__ = [
     "MAX_LOG_SCALE_CHANGE",
