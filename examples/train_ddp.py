@@ -63,6 +63,7 @@ from dego import (
 )
 from dego.classes import FREE_LABEL
 from dego.data import LIDAR_ORIGIN
+from dego.losses import depth_loss, semantic_loss
 
 SEMANTIC_CLASSES = NUM_CLASSES - 1  # Gaussians carry classes 0..16; free is empty space
 STRIDE = 2  # one Gaussian per STRIDE x STRIDE pixel cell
@@ -220,15 +221,14 @@ class PixelGaussians(nn.Module):
 def render_loss(
     gaussians: GaussianSet, sample: Sample, depth_weight: float
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Weak 2D supervision: (total, semantic cross-entropy, depth L1 in metres)."""
+    """Weak 2D supervision (dego.losses): (total, semantic cross-entropy, depth L1 in metres)."""
     height, width = sample.depth.shape[-2:]
     rendered = splat(
         gaussians, sample.ego_to_cam[None], sample.intrinsics[None], (height, width)
-    )  # features: sum_i w_i p_i, which sums to alpha over classes
-    probs = torch.cat([rendered.features[0], 1 - rendered.alpha[0, :, None]], dim=1)  # 18 classes
-    semantic = F.nll_loss(torch.log(probs.clamp_min(1e-6)), sample.semantics)
-    hit = sample.semantics != FREE_LABEL
-    depth = (rendered.depth[0] - sample.depth).abs()[hit].mean()
+    )  # features: sum_i w_i p_i, which sums to alpha over classes; 1 - alpha is free space
+    semantic = semantic_loss(rendered.features, rendered.alpha, sample.semantics[None])
+    hit = sample.semantics != FREE_LABEL  # depth only where the labels see a surface
+    depth = depth_loss(rendered.depth, sample.depth[None], hit[None])
     return semantic + depth_weight * depth, semantic, depth
 
 
