@@ -193,6 +193,45 @@ def test_without_matplotlib_plots_raise_a_helpful_import_error(
             call()
 
 
+@pytest.mark.slow
+def test_every_picture_module_imports_in_a_process_without_matplotlib() -> None:
+    """The modules of dego.viz, imported for the first time with matplotlib blocked: each
+    imports, and each drawing function raises the one install hint."""
+    import subprocess
+
+    code = """
+import sys
+sys.modules["matplotlib"] = None
+import torch
+import dego.viz as viz
+from dego.viz import bev, cameras, colors, legend, occupancy_3d
+labels = torch.zeros(4, 4, 2, dtype=torch.long)
+assert viz.colorize_labels(labels).shape == (4, 4, 2, 3)
+failures = []
+for call in (
+    lambda: bev.plot_bev(labels),
+    lambda: bev.compare_bev(labels, labels),
+    lambda: occupancy_3d.plot_occupancy_3d(labels),
+    lambda: cameras.camera_panels(depth=torch.ones(1, 4, 4)),
+    lambda: legend.add_class_legend(object()),
+    lambda: viz.new_figure((2.0, 2.0)),
+    lambda: viz.save_figure(object(), "never.png"),
+):
+    try:
+        call()
+        failures.append("no error")
+    except ImportError as error:
+        if 'pip install "dego-occupancy[viz]"' not in str(error):
+            failures.append(str(error))
+print(failures)
+"""
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
 # ----------------------------------------------------------------- pictures
 
 

@@ -38,6 +38,7 @@ def _require_matplotlib() -> None:
 
 def new_figure(figsize: tuple[float, float]) -> Figure:
     """A constrained-layout Figure on its own Agg canvas (no pyplot, no window)."""
+    _require_matplotlib()
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure as MplFigure
 
