@@ -23,3 +23,8 @@ def check_positive(name: str, value: object) -> float:
     ):
         raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
     return float(value)
+
+
+def repeated_values(values: tuple) -> list:
+    """The values that occur more than once, in order of first appearance."""
+    return sorted({v for v in values if values.count(v) > 1}, key=values.index)

@@ -22,6 +22,7 @@ from typing import NoReturn, TextIO
 import torch
 
 from dego._atomic import check_output_file, make_output_dir
+from dego._checks import repeated_values
 
 INTERRUPTED_STATUS = 130
 """Exit status after Ctrl-C (128 + SIGINT, as shells report it)."""
@@ -175,11 +176,6 @@ def add_device(parser: argparse.ArgumentParser) -> None:
         help="torch device: cpu, cuda or cuda:N (cpu)",
     )
     add_threads_argument(parser)
-
-
-def repeated_values(values: tuple) -> list:
-    """The values that occur more than once, in order of first appearance."""
-    return sorted({v for v in values if values.count(v) > 1}, key=values.index)
 
 
 def name_list(text: str) -> tuple[str, ...]:

@@ -11,7 +11,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-from dego._checks import check_int
+from dego._checks import check_int, repeated_values
 from dego.demo.fit import MAX_SEED
 
 
@@ -32,7 +32,7 @@ def check_distinct(name: str, values: tuple) -> None:
     """``values`` of the config field ``name`` is not empty and names each value once."""
     if not values:
         raise ValueError(f"{name}: expected at least one value, got {values!r}")
-    repeated = sorted({v for v in values if values.count(v) > 1}, key=values.index)
+    repeated = repeated_values(values)
     if repeated:
         raise ValueError(f"{name}: {', '.join(map(str, repeated))} repeated; each value runs once")
 
