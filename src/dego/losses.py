@@ -162,6 +162,27 @@ def _cross_entropy(
     return loss
 
 
+def _semantic_inputs(
+    scores: Tensor,
+    alpha: Tensor,
+    labels: Tensor,
+    mask: Tensor | None,
+    class_weights: Tensor | None,
+    eps: float,
+) -> tuple[Tensor | None, Tensor | None]:
+    """The checks of the ``L_seg`` functions: ``(weights, valid)``, the class weights in the
+    compute dtype and the mask as bool (``None`` for all pixels)."""
+    _check_eps(eps)
+    _check_same("alpha", alpha, scores, "scores")
+    if labels.device != scores.device:
+        raise ValueError(f"labels: on device {labels.device} but scores is on {scores.device}")
+    valid = _valid(mask, scores)
+    num_labels = scores.shape[2] + 1
+    weights, checks = _checked_class_weights(class_weights, num_labels, scores)
+    run_checks([_label_check(labels, num_labels, valid), *checks])
+    return weights, valid
+
+
 @typechecked
 def semantic_cross_entropy_map(
     scores: Float[Tensor, "B V C H W"],
@@ -221,13 +242,7 @@ def semantic_cross_entropy_map(
         ...                            labels).squeeze()
         tensor([0.5108, 1.6094, 1.6094])
     """
-    _check_eps(eps)
-    _check_same("alpha", alpha, scores, "scores")
-    if labels.device != scores.device:
-        raise ValueError(f"labels: on device {labels.device} but scores is on {scores.device}")
-    num_labels = scores.shape[2] + 1
-    weights, checks = _checked_class_weights(class_weights, num_labels, scores)
-    run_checks([_label_check(labels, num_labels, None), *checks])
+    weights, _ = _semantic_inputs(scores, alpha, labels, None, class_weights, eps)
     return _cross_entropy(scores, alpha, labels, weights, eps).to(scores.dtype)
 
 
@@ -278,19 +293,12 @@ def semantic_loss(
             other values than 0/1; ``class_weights`` of the wrong shape or device, negative
             or not finite; a device mismatch; ``eps`` not in ``(0, 1)``.
     """
-    _check_eps(eps)
-    _check_same("alpha", alpha, scores, "scores")
-    if labels.device != scores.device:
-        raise ValueError(f"labels: on device {labels.device} but scores is on {scores.device}")
-    valid = _valid(mask, scores)
-    num_labels = scores.shape[2] + 1
-    weights, checks = _checked_class_weights(class_weights, num_labels, scores)
-    run_checks([_label_check(labels, num_labels, valid), *checks])
+    weights, valid = _semantic_inputs(scores, alpha, labels, mask, class_weights, eps)
     if valid is not None:
         # Select before the arithmetic: a multiplication (or a fill after it) would still
         # send 0 * NaN = NaN back through the masked-out pixels' gradients. A masked-out
         # pixel becomes certain free space: probability 1, cross-entropy 0.
-        free = num_labels - 1
+        free = scores.shape[2]
         scores = torch.where(valid[:, :, None], scores, scores.new_zeros(()))
         alpha = torch.where(valid, alpha, alpha.new_zeros(()))
         labels = torch.where(valid, labels, torch.full_like(labels, free))

@@ -27,7 +27,7 @@ from dego.demo.model import (
 )
 from dego.demo.offsets import FrameOffsets, free_offsets, free_velocities, true_motion
 from dego.gaussians import GaussianSet
-from dego.losses import depth_loss, semantic_loss
+from dego.losses import rendering_loss
 from dego.splatting import SplatOutput, splat
 
 Variant = Literal[
@@ -375,8 +375,8 @@ def fit_scene(
     Each iteration renders one frame (a seeded shuffled cycle over the clip; only the
     reference frame for ``single-frame``, for ``round(iterations / T)`` steps) into its
     cameras and minimises ``semantics + depth_weight * depth + deformation_weight *
-    deformation`` (:func:`~dego.losses.semantic_loss` and :func:`~dego.losses.depth_loss`
-    against the frame's pseudo labels, :func:`~dego.deformation.deformation_loss`).
+    deformation`` (the terms of :func:`~dego.losses.rendering_loss` against the frame's
+    pseudo labels, :func:`~dego.deformation.deformation_loss`).
     ``scene``: the clip's :class:`~dego.data.SyntheticScene`, needed by the ``true-motion``
     oracle only. ``progress(iteration, losses)`` is called after every step.
     """
@@ -461,10 +461,10 @@ def _frame_losses(
         for x in (clip.depth, clip.semantics, clip.supervised)
     )
     assert rendered.depth is not None
-    losses = {
-        "semantics": semantic_loss(rendered.features, rendered.alpha, semantics, supervised),
-        "depth": depth_loss(rendered.depth, depth, supervised),
-    }
+    rendering = rendering_loss(
+        rendered.features, rendered.alpha, rendered.depth, semantics, depth, supervised
+    )
+    losses = {"semantics": rendering.semantic, "depth": rendering.depth}
     losses["deformation"] = (
         deformation_terms["total"] if deformation_terms else losses["depth"].new_zeros(())
     )

@@ -6,9 +6,9 @@ but ``single-frame``) at one other frame, drawn at random: there the Gaussians a
 ``static`` (as predicted), moved by the deformation network on the network's latents
 (``rigid``: position offsets only; ``decoupled``: DeGO's rigid / nonrigid mask), or moved
 with the ground-truth agent they sit on (``true-motion``, an oracle for analysis). The loss
-is :func:`~dego.losses.semantic_loss` + ``depth_weight *`` :func:`~dego.losses.depth_loss`
-against each rendered frame's pseudo labels, averaged over the frames, plus the
-deformation's regulariser.
+is :func:`~dego.losses.rendering_loss` (semantics + ``depth_weight *`` depth) against each
+rendered frame's pseudo labels, averaged over the frames, plus the deformation's
+regulariser.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from dego.demo.fit import MAX_SEED, most_likely_in
 from dego.demo.model import MOVABLE_CLASSES
 from dego.demo.offsets import agent_offsets, agent_under
 from dego.gaussians import GaussianSet
-from dego.losses import depth_loss, semantic_loss
+from dego.losses import RenderingLossWeights, rendering_loss
 from dego.splatting import splat
 
 FeedForwardVariant = Literal["single-frame", "static", "rigid", "decoupled", "true-motion"]
@@ -188,6 +188,7 @@ def step_loss(
     if variant != "single-frame" and record.num_frames > 1:
         others = [i for i in range(record.num_frames) if i != record.reference]
         frames.append(others[int(torch.randint(len(others), (), generator=generator))])
+    weights = RenderingLossWeights(semantic=1.0, depth=config.depth_weight)
     total = prediction.gaussians.means.new_zeros(())
     for index in frames:
         gaussians, regulariser = gaussians_at_frame(
@@ -202,15 +203,17 @@ def step_loss(
             record.intrinsics[index][cameras][None],
             record.image_size,
         )
-        supervised = record.supervised[index][cameras][None]
         assert rendered.depth is not None
-        semantic = semantic_loss(
-            rendered.features, rendered.alpha, record.semantics[index][cameras][None], supervised
+        rendering = rendering_loss(
+            rendered.features,
+            rendered.alpha,
+            rendered.depth,
+            record.semantics[index][cameras][None],
+            record.depth[index][cameras][None],
+            record.supervised[index][cameras][None],
+            weights=weights,
         )
-        depth = depth_loss(rendered.depth, record.depth[index][cameras][None], supervised)
-        total = total + (
-            semantic + config.depth_weight * depth + config.deformation_weight * regulariser
-        )
+        total = total + (rendering.total + config.deformation_weight * regulariser)
     return total / len(frames)
 
 
