@@ -257,15 +257,20 @@ BEFORE: dict[str, tuple[str, ...]] = {
 """Each module's ``__all__`` as it was (``dego.study``: its public definitions; it had no
 ``__all__``)."""
 
-MOVED = {
-    "dego.study": "dego.demo.study",  # the study runner, beside its command
-    ("dego.demo", "weak_losses"): "dego.losses",  # now rendering_loss, on plain tensors
-}
-"""Where a module or one name went (``dego.study`` still imports, with a warning)."""
+MOVED_MODULES = {"dego.study": "dego.demo.study"}  # the study runner, beside its command
+"""Modules that moved whole (``dego.study`` still imports, with a warning)."""
+
+RENAMED = {"dego.demo.weak_losses": "dego.losses.rendering_loss"}  # on plain tensors
+"""Names that became another name elsewhere."""
 
 
-def home(module: str, name: str) -> str:
-    return MOVED.get((module, name), MOVED.get(module, module))  # type: ignore[arg-type]
+def new_home(module: str, name: str) -> tuple[str, str]:
+    """Where ``module.name`` is now: ``(module, name)``."""
+    renamed = RENAMED.get(f"{module}.{name}")
+    if renamed is not None:
+        where, _, new_name = renamed.rpartition(".")
+        return where, new_name
+    return MOVED_MODULES.get(module, module), name
 
 
 def test_dego_all_only_grows() -> None:
@@ -275,10 +280,8 @@ def test_dego_all_only_grows() -> None:
 @pytest.mark.parametrize("module", sorted(BEFORE))
 def test_every_former_public_name_resolves(module: str) -> None:
     missing = []
-    for name in BEFORE[module]:
-        where = home(module, name)
-        if name == "weak_losses":  # the demo's helper became a library module
-            name = "rendering_loss"
+    for former in BEFORE[module]:
+        where, name = new_home(module, former)
         if not hasattr(importlib.import_module(where), name):
             missing.append(f"{where}.{name}")
     assert not missing

@@ -376,7 +376,8 @@ def _pictures(
     try:
         import matplotlib  # noqa: F401
 
-        from dego.demo.pictures import bev_figure, camera_figure, loss_figure, png_bytes
+        from dego.demo.pictures import bev_figure, camera_figure, loss_figure
+        from dego.viz import png_bytes
     except ImportError:
         print('pictures skipped: they need matplotlib (pip install "dego-occupancy[viz]")')
         return {}

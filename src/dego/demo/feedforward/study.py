@@ -340,7 +340,8 @@ def write_feedforward_study(
         except ImportError:
             pass
         else:
-            from dego.demo.pictures import bev_figure, png_bytes
+            from dego.demo.pictures import bev_figure
+            from dego.viz import png_bytes
 
             clip = result.pictured_scene.reference_clip()
             for variant, labels in result.pictured_labels.items():

@@ -25,7 +25,7 @@ from dego.demo.stats import (
     mean_interval,
     paired_differences,
 )
-from dego.demo.study.picture import PICTURED_GAINS, study_figure, study_picture
+from dego.demo.study.picture import PICTURED_GAINS, study_figure, study_picture, study_png
 from dego.demo.study.report import COMPARISONS, PAIRED_METRICS, study_report, write_study
 from dego.demo.study.runner import (
     DEFAULT_STUDY_VARIANTS,
@@ -64,6 +64,7 @@ __all__ = [
     "run_study",
     "study_figure",
     "study_picture",
+    "study_png",
     "study_report",
     "summarise",
     "write_study",

@@ -19,9 +19,14 @@ PICTURED_GAINS = ("rigid", "decoupled", "free-offsets", "free-velocities", "true
 
 def study_picture(runs: Sequence[StudyRun], path: Path) -> Path:
     """Write :func:`study_figure` to ``path`` (PNG, atomically; needs matplotlib)."""
+    return write_files({path: study_png(runs)})[0]
+
+
+def study_png(runs: Sequence[StudyRun]) -> bytes:
+    """:func:`study_figure` encoded as PNG (``study.png``; needs matplotlib)."""
     from dego.viz import png_bytes
 
-    return write_files({path: png_bytes(study_figure(runs), dpi=90)})[0]
+    return png_bytes(study_figure(runs), dpi=90)
 
 
 def study_figure(runs: Sequence[StudyRun]) -> Any:

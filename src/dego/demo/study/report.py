@@ -190,8 +190,7 @@ def write_study(
         except ImportError:
             pass
         else:
-            from dego.demo.study.picture import study_figure
-            from dego.viz import png_bytes
+            from dego.demo.study.picture import study_png
 
-            files[out / "study.png"] = png_bytes(study_figure(runs), dpi=90)
+            files[out / "study.png"] = study_png(runs)
     return text, write_files(files)
