@@ -39,7 +39,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.manual_seed(0)
 
-    # Data: synthetic scenes of 3 frames (t = -1, 0, +1), rendered once and cached.
+    # Data: synthetic scenes of 3 frames 0.5 s apart (t = -1, 0, +1), rendered once and cached.
     data = DataConfig(args.train_scenes, args.heldout_scenes, image_size=tuple(args.image_size))
     scenes = [
         r.to(args.device)
@@ -50,7 +50,8 @@ def main() -> None:
         for r in load_scenes(scene_seeds(0, 1, data.heldout_scenes), data, args.cache)
     ]
 
-    # The image network and DeGO's deformation on its latents (times in frames).
+    # The image network and DeGO's deformation on its latents (times in frames). For the
+    # constant-velocity rigid branch (ours, beyond the paper): rigid_motion="velocity".
     network = GaussianPredictor(latent_dim=16).to(args.device)
     deformation = DecoupledDeformation(16, hidden_dim=64, depth=3, head_hidden=64).to(args.device)
     optimizer = torch.optim.Adam(
@@ -63,9 +64,13 @@ def main() -> None:
     for step in range(args.steps):
         scene = scenes[step % len(scenes)]
         ref = scene.reference
-        # 1. Gaussians from the reference frame's images (inference sees this only).
+        # 1. Gaussians from the reference frame's images (inference sees this only), their
+        #    depth along each ray anchored on that frame's pseudo depth (inference has it too).
         prediction = network(
-            scene.images[None], scene.world_to_cam[ref][None], scene.intrinsics[ref][None]
+            scene.images[None],
+            scene.world_to_cam[ref][None],
+            scene.intrinsics[ref][None],
+            anchor_depth=scene.depth[ref][None],
         )
         loss = torch.zeros((), device=args.device)
         for index in range(scene.num_frames):

@@ -16,6 +16,7 @@ from dego import GaussianSet, quaternions_to_rotation_matrices
 from dego.deformation import (
     MAX_LOG_SCALE_CHANGE,
     PARAMETERS,
+    RIGID_MOTIONS,
     DecoupledDeformation,
     DeformationDeltas,
     DeformationLossWeights,
@@ -598,6 +599,10 @@ def test_bad_input(case: str, preset: str) -> None:
         ({"chunk_rows": 2.5}, ValueError, "chunk_rows"),
         ({"loss_weights": {"reg": 1.0}}, TypeError, "loss_weights"),
         ({"loss_weights": (1.0, 1.0, 1.0, 1.0, 10.0, 0.5)}, TypeError, "loss_weights"),
+        ({"rigid_motion": "speed"}, ValueError, "rigid_motion"),
+        ({"rigid_motion": "Velocity"}, ValueError, "rigid_motion"),
+        ({"rigid_motion": None}, ValueError, "rigid_motion"),
+        ({"rigid_motion": "velocity", "preset": "official"}, ValueError, "rigid_motion"),
     ],
 )
 def test_bad_configuration(kwargs: dict, error: type, match: str) -> None:
@@ -1093,3 +1098,155 @@ def test_non_finite_inputs_are_rejected_naming_the_field(field: str, value: floa
     gs = GaussianSet(**{k: v for k, v in tensors.items() if k != "features"})
     with pytest.raises(ValueError, match=rf"{field}: 1 of \d+ values are not finite"):
         module(gs, tensors["features"], torch.tensor([0.0, 1.0]))
+
+
+# ----------------------------------------------------------------------------------------
+# rigid_motion="velocity": d_mu_rig = t v, one velocity per Gaussian
+# ----------------------------------------------------------------------------------------
+
+
+def velocity_module(
+    *, seed: int = 0, std: float | None = 0.3, dtype: torch.dtype = torch.float64, **kwargs: object
+) -> DecoupledDeformation:
+    """A small ``rigid_motion="velocity"`` module, every parameter normal(0, std) unless
+    ``std`` is None (the fresh, zero-initialised heads)."""
+    module = make_module(seed=seed, dtype=dtype, rigid_motion="velocity", **kwargs)
+    if std is not None:
+        g = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            for param in module.parameters():
+                param.copy_(torch.randn(param.shape, generator=g, dtype=torch.float64) * std)
+    return module
+
+
+def test_rigid_motions_are_exported() -> None:
+    assert RIGID_MOTIONS == ("time", "velocity")
+    assert make_module().rigid_motion == "time"
+
+
+def test_velocity_replaces_the_rigid_offset_head() -> None:
+    velocity = velocity_module(std=None)
+    keys = set(velocity.state_dict())
+    assert any(key.startswith("velocity_head.") for key in keys)
+    assert not any(key.startswith("heads.rigid_offset.") for key in keys)
+    assert "rigid_offset" not in velocity.heads and "nonrigid_offset" in velocity.heads
+    assert velocity.velocity_head is not None
+    assert velocity.velocity_head[0].in_features == velocity.input_static.in_features
+    assert velocity.velocity_head[-1].out_features == 3
+    assert "rigid_motion='velocity'" in repr(velocity)
+    time = make_module()
+    assert time.velocity_head is None and "rigid_motion" not in repr(time)
+    assert any(key.startswith("heads.rigid_offset.") for key in time.state_dict())
+    assert not any(key.startswith("velocity_head.") for key in time.state_dict())
+
+
+@pytest.mark.slow
+def test_velocity_gradcheck() -> None:
+    module = velocity_module(feature_dim=2, hidden_dim=4, depth=2, head_hidden=4)
+    canonical, features = make_inputs(1, 3, feature_dim=2)
+    means = canonical.means.clone().requires_grad_(True)
+    features.requires_grad_(True)
+    times = times_tensor([0.4, -1.3])
+    out = module(canonical, features, times)
+    assert out.rigid_offsets.abs().min() > 0  # not trivially zero
+
+    def deform(means: Tensor, features: Tensor) -> tuple[Tensor, ...]:
+        out = module(canonical.replace(means=means), features, times)
+        g = out.gaussians
+        return g.means, g.quats, g.scales, g.opacities, out.rigid_mask, out.rigid_offsets
+
+    assert torch.autograd.gradcheck(deform, (means, features))
+
+
+def test_velocity_rigid_offsets_vanish_at_time_zero() -> None:
+    module = velocity_module(fixed_mask=0.0, time_scale=2.5)
+    canonical, features = make_inputs(2, 5)
+    out = module(canonical, features, times_tensor([0.0, 1.0, -0.0]))
+    for t in (0, 2):
+        assert torch.equal(out.rigid_offsets[:, t], torch.zeros_like(out.rigid_offsets[:, t]))
+    assert out.rigid_offsets[:, 1].abs().min() > 0
+    for name in (*PARAMETERS, "features"):  # rigid only and no motion: the canonical set
+        for t in (0, 2):
+            assert torch.equal(getattr(out.gaussians, name)[:, t], getattr(canonical, name)), name
+    assert not torch.equal(out.gaussians.means[:, 1], canonical.means)
+
+
+def test_velocity_nonrigid_branch_stays_time_conditioned() -> None:
+    module = velocity_module()
+    canonical, features = make_inputs(1, 4)
+    out = module(canonical, features, times_tensor([0.5, 1.0]))
+    # rigid: exactly linear in t; nonrigid: a function of h(t), not proportional to t
+    torch.testing.assert_close(out.rigid_offsets[:, 1], 2 * out.rigid_offsets[:, 0])
+    assert not torch.allclose(out.nonrigid_offsets[:, 1], 2 * out.nonrigid_offsets[:, 0])
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    st.integers(0, 2**16),
+    st.floats(-20.0, 20.0),
+    st.floats(-20.0, 20.0),
+    st.floats(-4.0, 4.0),
+    st.floats(0.25, 8.0),
+)
+def test_velocity_rigid_offsets_are_linear_in_time(
+    seed: int, t1: float, t2: float, a: float, time_scale: float
+) -> None:
+    module = velocity_module(seed=seed, time_scale=time_scale)
+    canonical, features = make_inputs(2, 3, seed=seed)
+
+    def offsets(times: list[float]) -> Tensor:
+        return module(canonical, features, times_tensor(times)).rigid_offsets
+
+    velocity = offsets([time_scale])[:, 0]  # t / time_scale = 1: v itself, (B, N, 3)
+    both = offsets([t1, t2])
+    for i, t in enumerate((t1, t2)):
+        torch.testing.assert_close(both[:, i], t / time_scale * velocity)
+    torch.testing.assert_close(offsets([a * t1])[:, 0], a * both[:, 0])
+    torch.testing.assert_close(t2 * both[:, 0], t1 * both[:, 1])  # proportional offsets
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    st.integers(0, 2**16),
+    st.lists(st.floats(-1e3, 1e3), min_size=1, max_size=4),
+    st.sampled_from([None, 0.0]),
+    st.sampled_from([torch.float32, torch.float64]),
+)
+def test_velocity_fresh_module_is_the_identity(
+    seed: int, times: list[float], fixed_mask: float | None, dtype: torch.dtype
+) -> None:
+    module = velocity_module(seed=seed, std=None, fixed_mask=fixed_mask, dtype=dtype)
+    canonical, features = make_inputs(2, 3, seed=seed, dtype=dtype)
+    out = module(canonical, features, times_tensor(times, dtype))
+    expected = canonical_at_times(canonical, len(times))
+    for name in (*PARAMETERS, "features"):
+        assert torch.equal(getattr(out.gaussians, name), getattr(expected, name)), name
+    assert torch.equal(out.rigid_offsets, torch.zeros_like(out.rigid_offsets))
+
+
+def test_velocity_reset_parameters_restores_the_identity() -> None:
+    module = velocity_module()
+    canonical, features = make_inputs(1, 4)
+    assert module(canonical, features, times_tensor()).rigid_offsets.abs().sum() > 0
+    module.reset_parameters()
+    out = module(canonical, features, times_tensor())
+    assert torch.equal(out.gaussians.means, canonical_at_times(canonical, 4).means)
+
+
+def test_velocity_dtypes_shapes_and_backward(dtype: torch.dtype) -> None:
+    module = velocity_module(dtype=dtype)
+    canonical, features = make_inputs(2, 5, dtype=dtype)
+    features.requires_grad_(True)
+    out = module(canonical, features, times_tensor(dtype=dtype))
+    for name in (*PARAMETERS, "features"):
+        value = getattr(out.gaussians, name)
+        assert value.dtype == dtype and torch.isfinite(value).all(), name
+    assert out.rigid_offsets.shape == out.nonrigid_offsets.shape == (2, 4, 5, 3)
+    assert out.rigid_offsets.dtype == dtype and out.rigid_mask.shape == (2, 5)
+    deformation_loss(out).total.add(out.gaussians.means.sum()).backward()
+    assert features.grad is not None and torch.isfinite(features.grad).all()
+    assert module.velocity_head is not None
+    for param in module.velocity_head.parameters():
+        assert param.grad is not None and param.grad.abs().sum() > 0
+    empty = module(*make_inputs(2, 0, dtype=dtype), times_tensor(dtype=dtype))
+    assert empty.rigid_offsets.shape == (2, 4, 0, 3)

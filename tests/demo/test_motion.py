@@ -10,10 +10,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dego import SyntheticScene
+from dego import DecoupledDeformation, SyntheticScene
 from dego.demo import (
+    EXTENSION_VARIANTS,
     MOVABLE_CLASSES,
     REFERENCE_VARIANTS,
+    VARIANTS,
     DemoClip,
     FitConfig,
     FrameOffsets,
@@ -133,6 +135,16 @@ def test_free_velocities_start_still_and_fit_through_the_demo(clip: DemoClip) ->
     assert isinstance(result.deformation, FrameVelocities)
     assert result.model.deform_classes == MOVABLE_CLASSES  # the same gating as the networks
     assert all(math.isfinite(v) for v in result.history["total"])
+
+
+def test_the_velocity_variant_fits_a_constant_velocity_network(clip: DemoClip) -> None:
+    built = build_deformation("velocity", FitConfig(num_gaussians=6), clip)
+    assert isinstance(built, DecoupledDeformation) and built.rigid_motion == "velocity"
+    assert built.fixed_mask is None  # the learned mask, as decoupled
+    result = fit_scene(clip, "velocity", FitConfig(iterations=3, num_gaussians=40))
+    assert result.model.deform_classes == MOVABLE_CLASSES
+    assert all(math.isfinite(v) for v in result.history["total"])
+    assert "velocity" in EXTENSION_VARIANTS and "velocity" not in VARIANTS
 
 
 # -- the oracle ---------------------------------------------------------------------------

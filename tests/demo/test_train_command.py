@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -14,12 +16,14 @@ import torch
 
 import dego.demo.feedforward.command as command
 from dego.cli import main
-from dego.demo.feedforward import FEEDFORWARD_VARIANTS
+from dego.demo.feedforward import FEEDFORWARD_VARIANTS, SCORES
 from dego.demo.feedforward.study import (
+    COMPARISONS,
     PRESETS,
     FeedForwardRuns,
     FeedForwardStudyConfig,
     feedforward_report,
+    won_back,
 )
 from dego.demo.stats import StudyRun
 
@@ -45,6 +49,22 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
         (["--heldout-scenes", "x"], "argument --heldout-scenes"),
         (["--quick", "--full"], "not allowed with argument"),
         (["--device", "tpu"], "argument --device"),
+        (["--frame-dt", "0"], "argument --frame-dt"),
+        (["--frame-dt", "-1"], "argument --frame-dt"),
+        (["--frame-dt", "nan"], "argument --frame-dt"),
+        (["--frame-dt", "inf"], "argument --frame-dt"),
+        (["--frame-dt", "9"], "argument --frame-dt"),
+        (["--frame-dt", "fast"], "argument --frame-dt"),
+        (["--frames", "4"], "--frames: expected an odd number"),
+        (["--frames", "2"], "argument --frames"),
+        (["--frames", "81"], "--frame-dt:"),  # 40 frames of 0.5 s: 20 s > 8 s
+        (["--frames", "35", "--frame-dt", "0.5"], "--frame-dt:"),
+        (["--depth", "foo"], "argument --depth"),
+        (["--recipe", "foo"], "argument --recipe"),
+        (["--depth-noise", "1"], "argument --depth-noise"),
+        (["--depth-noise", "-0.1"], "argument --depth-noise"),
+        (["--depth-noise", "nan"], "argument --depth-noise"),
+        (["--warmup-steps", "-1"], "argument --warmup-steps"),
     ],
 )
 def test_bad_flags_are_usage_errors_before_any_work(
@@ -54,13 +74,13 @@ def test_bad_flags_are_usage_errors_before_any_work(
     no_work: None,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    out = tmp_path / "out"
+    out, cache = tmp_path / "out", tmp_path / "cache"
     with pytest.raises(SystemExit) as exit_info:
-        main(["train", *flags, "--cache", str(tmp_path / "cache"), "--out", str(out)])
+        main(["train", *flags, "--cache", str(cache), "--out", str(out)])
     assert exit_info.value.code == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith("dego train: error:") and message in line, line
-    assert not out.exists()
+    assert not out.exists() and not cache.exists()
 
 
 @pytest.mark.parametrize("flag", ["--cache", "--out"])
@@ -85,13 +105,22 @@ def test_presets_and_flags_make_the_study_asked_for() -> None:
     assert config.train.steps == 7 and config.variants == ("static", "decoupled")
     assert command.study_config(train.parse_args([])) == PRESETS["cpu"]
     assert PRESETS["cpu"].variants == FEEDFORWARD_VARIANTS
+    flags = [
+        *("--warmup-steps", "5", "--recipe", "scratch", "--depth", "learned"),
+        *("--frames", "5", "--frame-dt", "0.2", "--depth-noise", "0.1", "--quick"),
+    ]
+    config = command.study_config(train.parse_args(flags))
+    assert (config.train.warmup_steps, config.train.recipe) == (5, "scratch")
+    assert config.train.depth_source == "learned"
+    assert config.train.steps == PRESETS["quick"].train.steps
+    assert (config.data.frames, config.data.frame_dt, config.data.depth_noise) == (5, 0.2, 0.1)
+    assert config.data.image_size == PRESETS["quick"].data.image_size
+    assert command.study_config(train.parse_args(["--frame-dt", "8"])).data.frame_dt == 8.0
 
 
 def _runs(values: dict[str, list[float]]) -> FeedForwardRuns:
     runs = [
-        StudyRun(seed, 100, variant, dict.fromkeys(
-            ("IoU", "mIoU", "InsM", "ScnM", "HCM", "RayIoU", "vehicles", "articulated"), v
-        ), {}, float("nan"), 1.0)
+        StudyRun(seed, 100, variant, dict.fromkeys(SCORES, v), {}, float("nan"), 1.0)
         for variant, per_seed in values.items()
         for seed, v in enumerate(per_seed)
     ]  # fmt: skip
@@ -123,6 +152,86 @@ def test_the_report_gives_intervals_and_answers_the_questions() -> None:
         _runs({"static": [1.0], "decoupled": [2.0]}), one, wall_seconds=1.0, device="cpu"
     )
     assert "no intervals" in text and "1 seed(s): no interval" in text
+
+
+def test_won_back_is_the_share_of_the_harm() -> None:
+    runs = _runs({"single-frame": [10.0] * 3, "static": [4.0] * 3, "velocity": [8.0] * 3}).runs
+    found = won_back(runs, "velocity")
+    assert found is not None
+    share, half = found
+    assert share == pytest.approx(4 / 6)
+    assert half.n == 3 and half.mean == pytest.approx(1.0) and half.low == pytest.approx(1.0)
+    assert won_back(runs, "decoupled") is None  # not run
+    assert won_back(runs, "velocity", score="mIoU") == found  # the same numbers everywhere
+    # per seed: gains 4, 3, 3 of harms 6, 6, 6; gain - harm / 2 = 1, 0, 0
+    runs = _runs(
+        {
+            "single-frame": [10.0, 12.0, 11.0],
+            "static": [4.0, 6.0, 5.0],
+            "velocity": [8.0, 9.0, 8.0],
+        }
+    ).runs
+    found = won_back(runs, "velocity")
+    assert found is not None
+    assert found[0] == pytest.approx(10 / 18)
+    assert found[1].mean == pytest.approx(1 / 3) and found[1].low < 0 < found[1].high
+    # only the seeds with all three variants count
+    partial = [r for r in runs if not (r.variant == "velocity" and r.seed == 2)]
+    found = won_back(partial, "velocity")
+    assert found is not None and found[1].n == 2
+    assert found[0] == pytest.approx(7 / 12) and found[1].mean == pytest.approx(0.5)
+    assert won_back([r for r in runs if r.variant != "single-frame"], "velocity") is None
+    assert won_back([r for r in runs if r.variant != "static"], "velocity") is None
+
+
+@pytest.mark.parametrize("single_frame", [4.0, 3.0])
+def test_won_back_without_harm_is_nan(single_frame: float) -> None:
+    runs = _runs(
+        {"single-frame": [single_frame] * 3, "static": [4.0] * 3, "velocity": [8.0] * 3}
+    ).runs
+    found = won_back(runs, "velocity")
+    assert found is not None and math.isnan(found[0])
+    assert found[1].mean == pytest.approx(4 - (single_frame - 4) / 2)
+
+
+def test_the_report_says_what_each_variant_wins_back() -> None:
+    result = _runs(
+        {
+            "single-frame": [10.0, 10.0, 10.0],
+            "static": [4.0, 4.0, 4.0],
+            "rigid": [4.0, 5.0, 6.0],
+            "decoupled": [5.0, 5.0, 5.0],
+            "velocity": [8.0, 8.0, 8.0],
+            "true-motion": [10.0, 9.0, 11.0],
+        }
+    )
+    config = FeedForwardStudyConfig(seeds=(0, 1, 2))
+    text, payload = feedforward_report(result, config, wall_seconds=1.0, device="cpu")
+    lines = [line for line in text.splitlines() if "wins back" in line]
+    assert len(lines) == 4
+    assert "- velocity wins back 67% of the harm on HCM" in text
+    assert "- decoupled wins back 17% of the harm on HCM" in text
+    assert "- true motion (oracle) wins back 100% of the harm on HCM" in text
+    velocity = next(line for line in lines if line.startswith("- velocity"))
+    assert "at least half, the interval excludes 0" in velocity
+    decoupled = next(line for line in lines if line.startswith("- decoupled"))
+    assert "less than half, the interval excludes 0" in decoupled
+    assert payload["won_back"]["velocity"]["share"] == pytest.approx(2 / 3)
+    assert payload["won_back"]["velocity"]["at_least_half"]["mean"] == pytest.approx(1.0)
+    assert set(payload["won_back"]) == {"true-motion", "decoupled", "velocity", "rigid"}
+    # the velocity comparisons are in the paired table
+    assert ("velocity", "static") in COMPARISONS and ("velocity", "decoupled") in COMPARISONS
+    assert payload["paired"]["velocity - decoupled: HCM"]["mean"] == pytest.approx(3.0)
+    assert "| velocity - static | 3 |" in text
+    assert "velocity or DeGO's time-conditioned rigid branch?" in text
+    # no harm: the reading says so
+    flat = _runs({"single-frame": [4.0] * 3, "static": [4.0] * 3, "velocity": [8.0] * 3})
+    config = FeedForwardStudyConfig(
+        seeds=(0, 1, 2), variants=("single-frame", "static", "velocity")
+    )
+    text, payload = feedforward_report(flat, config, wall_seconds=1.0, device="cpu")
+    assert "there is no harm to win back" in text and "wins back" not in text
+    assert math.isnan(payload["won_back"]["velocity"]["share"])
 
 
 @pytest.mark.slow
@@ -165,7 +274,9 @@ def test_help_the_docs_and_the_readme_agree(source_tree: Path) -> None:
     assert command.TRAIN_DURATION in text and "--device" in text and "--cache" in text
     page = " ".join((source_tree / "docs" / "feedforward.md").read_text().split())
     assert command.TRAIN_DURATION in page
-    for flag in ("--quick", "--full", "--seeds", "--variants", "--steps", "--cache", "--out"):
+    flags = ("--quick", "--full", "--seeds", "--variants", "--steps", "--cache", "--out")
+    flags += ("--warmup-steps", "--recipe", "--depth", "--frames", "--frame-dt", "--depth-noise")
+    for flag in flags:
         assert flag in page and flag in text, flag
     for variant in FEEDFORWARD_VARIANTS:
         assert f"`{variant}`" in page or variant == "true-motion", variant
@@ -188,13 +299,20 @@ def test_quick_runs_on_cuda(tmp_path: Path) -> None:
     assert all(r["scores"]["IoU"] is not None for r in payload["runs"])
 
 
-def test_the_docs_tables_are_the_recorded_run(source_tree: Path) -> None:
-    """docs/feedforward.md's tables are the report of the run recorded beside it."""
+@pytest.mark.parametrize(
+    ("recorded", "frame_dt"),
+    [("feedforward-train.json", 0.5), ("feedforward-train-0.2s.json", 0.2)],
+)
+def test_the_docs_tables_are_the_recorded_run(
+    source_tree: Path, recorded: str, frame_dt: float
+) -> None:
+    """docs/feedforward.md's tables are the reports of the runs recorded beside it: the
+    study at the defaults and the 0.2 s contrast."""
     import math
 
     from dego.demo.feedforward import DataConfig, TrainConfig
 
-    payload = json.loads((source_tree / "docs" / "results" / "feedforward-train.json").read_text())
+    payload = json.loads((source_tree / "docs" / "results" / recorded).read_text())
 
     def nan(value: float | None) -> float:
         return math.nan if value is None else value
@@ -218,8 +336,10 @@ def test_the_docs_tables_are_the_recorded_run(source_tree: Path) -> None:
         train=TrainConfig(**settings["train"]),
     )
     assert config.train == PRESETS["cpu"].train  # the defaults were what ran
+    assert config.seeds == PRESETS["full"].seeds and config.data.frame_dt == frame_dt
+    assert config.data == dataclasses.replace(PRESETS["cpu"].data, frame_dt=frame_dt)
     text, _ = feedforward_report(
-        FeedForwardRuns(runs, {}, None, settings["data_seconds"]),
+        FeedForwardRuns(runs, {}, None, settings["data_seconds"], settings["warmup_seconds"]),
         config,
         wall_seconds=settings["wall_seconds"],
         device=settings["device"],

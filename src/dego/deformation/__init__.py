@@ -23,7 +23,7 @@ from dego.deformation.checkpoint import from_official_tensors as from_official_t
 from dego.deformation.checkpoint import official_state_dict as official_state_dict
 from dego.deformation.checkpoint import read_official_state_dict as read_official_state_dict
 from dego.deformation.loss import REDUCTIONS, DeformationLoss, DeformationLossWeights
-from dego.deformation.module import DecoupledDeformation
+from dego.deformation.module import RIGID_MOTIONS, DecoupledDeformation, RigidMotion
 from dego.deformation.module import canonical_batch as canonical_batch
 from dego.deformation.module import check_like_gaussians as check_like_gaussians
 from dego.deformation.presets import MAX_LOG_SCALE_CHANGE, PARAMETERS, shift_opacity_logit
@@ -38,11 +38,13 @@ __all__ = [
     "OFFICIAL_CHECKPOINT_PREFIX",
     "PARAMETERS",
     "REDUCTIONS",
+    "RIGID_MOTIONS",
     "DecoupledDeformation",
     "DeformationDeltas",
     "DeformationLoss",
     "DeformationLossWeights",
     "DeformationOutput",
+    "RigidMotion",
     "StateDictMismatchError",
     "deformation_loss",
     "quaternion_multiply",

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from jaxtyping import Float
@@ -34,6 +34,13 @@ from dego.gaussians import GaussianSet
 from dego.grid import VoxelGrid
 
 _CPU_CHUNK_ROWS = 4096  # (Gaussian, time) rows per feature-net chunk on CPU: cache-sized
+
+RigidMotion = Literal["time", "velocity"]
+RIGID_MOTIONS: tuple[RigidMotion, ...] = ("time", "velocity")
+"""How :class:`DecoupledDeformation`'s rigid branch moves a Gaussian. ``"time"`` (the
+paper's): ``d_mu_rig = rigid_offset(h(t))``, a function of the time-conditioned features;
+``"velocity"`` (ours, beyond the paper): one velocity per Gaussian from ``[f, PE(mu)]``,
+``d_mu_rig = t v``, so the rigid offset is exactly linear in time and 0 at t = 0."""
 
 
 def canonical_batch(gaussians: GaussianSet) -> tuple[int, int]:
@@ -152,6 +159,12 @@ class DecoupledDeformation(nn.Module):
             rigid-only baseline (position offsets only, as in GaussianFlowOcc; add its class
             gating with :func:`gate_by_class`, or use :class:`TemporalOffsetNetwork`),
             ``1.0`` a nonrigid-only model.
+        rigid_motion: ``"time"`` (default, the paper's rigid branch) or ``"velocity"``:
+            the rigid offset is ``t v`` with one velocity ``v`` per Gaussian predicted
+            from ``[f_i, PE_p(mu_i)]`` by a 2-layer head (zero-initialised), ``t`` the
+            time divided by ``time_scale``; the nonrigid branch stays time-conditioned.
+            Motion over a clip is one vector to learn per Gaussian instead of one per
+            (Gaussian, time). ``"paper"`` preset only.
         chunk_rows: about how many (Gaussian, time) rows the feature net and heads process
             at a time (Gaussians are chunked, every chunk covers all T); a speed knob
             only: results agree to floating-point rounding. ``None``: 4096 on CPU, where
@@ -173,6 +186,7 @@ class DecoupledDeformation(nn.Module):
         pos_scale: float | None = None,
         loss_weights: DeformationLossWeights | None = None,
         fixed_mask: float | None = None,
+        rigid_motion: RigidMotion = "time",
         chunk_rows: int | None = None,
     ) -> None:
         super().__init__()
@@ -201,6 +215,13 @@ class DecoupledDeformation(nn.Module):
             or not 0 <= fixed_mask <= 1
         ):
             raise ValueError(f"fixed_mask: expected None or a number in [0, 1], got {fixed_mask!r}")
+        if rigid_motion not in RIGID_MOTIONS:
+            raise ValueError(f"rigid_motion: expected one of {RIGID_MOTIONS}, got {rigid_motion!r}")
+        if rigid_motion == "velocity" and preset != "paper":
+            raise ValueError(
+                f"rigid_motion: 'velocity' needs the 'paper' preset (the official network has "
+                f"one position head for both branches), got preset {preset!r}"
+            )
         if loss_weights is not None and not isinstance(loss_weights, DeformationLossWeights):
             raise TypeError(
                 f"loss_weights: expected DeformationLossWeights, got {type(loss_weights).__name__}"
@@ -212,6 +233,7 @@ class DecoupledDeformation(nn.Module):
         self.loss_weights = loss_weights or DeformationLossWeights()
         self.chunk_rows = chunk_rows
         self.fixed_mask = None if fixed_mask is None else float(fixed_mask)
+        self.rigid_motion: RigidMotion = rigid_motion
 
         static_dim = feature_dim + 3 * (2 * pos_levels + 1)
         self.time_embedding = _mlp(2 * time_levels + 1, time_dim, time_dim, 2)
@@ -219,9 +241,16 @@ class DecoupledDeformation(nn.Module):
         self.input_static = nn.Linear(static_dim, hidden_dim)
         self.input_time = nn.Linear(time_dim, hidden_dim, bias=False)
         self.trunk = _mlp(hidden_dim, hidden_dim, hidden_dim, depth - 1) if depth > 1 else None
+        velocity = rigid_motion == "velocity"
         self.heads = nn.ModuleDict(
-            {name: _mlp(hidden_dim, head_hidden, k, 2) for name, k in spec.heads}
+            {
+                name: _mlp(hidden_dim, head_hidden, k, 2)
+                for name, k in spec.heads
+                if not (velocity and name == "rigid_offset")
+            }
         )
+        # per Gaussian, on [f, PE(mu)] like the paper's mask: d_mu_rig = t v
+        self.velocity_head = _mlp(static_dim, head_hidden, 3, 2) if velocity else None
         # per time step: on the feature net's h(t); per Gaussian: on [f, PE(mu)]
         mask_in = hidden_dim if spec.mask_per_time else static_dim
         self.mask_head = _mlp(mask_in, head_hidden, 1, 2)
@@ -251,7 +280,8 @@ class DecoupledDeformation(nn.Module):
             for part in (self.input_static.weight, self.input_time.weight):
                 nn.init.uniform_(part, -bound, bound)
         else:
-            for head in [*self.heads.values(), self.mask_head]:
+            velocity = [] if self.velocity_head is None else [self.velocity_head]
+            for head in [*self.heads.values(), self.mask_head, *velocity]:
                 last = _last_linear(head)
                 nn.init.zeros_(last.weight)
                 nn.init.zeros_(last.bias)
@@ -337,6 +367,9 @@ class DecoupledDeformation(nn.Module):
             mask = torch.sigmoid(raw.pop("mask")).squeeze(-1)  # (B, T, N)
         else:
             mask = torch.sigmoid(self.mask_head(static).to(static.dtype)).squeeze(-1)  # (B, N)
+        if self.velocity_head is not None:
+            velocities = self.velocity_head(static).to(static.dtype)  # (B, N, 3)
+            raw["rigid_offset"] = times[:, :, None, None] * velocities[:, None]
         canonical = {name: getattr(gaussians, name)[:, None] for name in PARAMETERS}
         deformed, deltas = spec.update(canonical, raw, mask)
         if gaussians.features is not None:
@@ -491,7 +524,14 @@ class DecoupledDeformation(nn.Module):
             f"feature_dim={self.feature_dim}, preset={self.preset!r}, "
             f"time_scale={self.time_scale}, pos_scale={self.pos_scale}"
             + ("" if self.fixed_mask is None else f", fixed_mask={self.fixed_mask}")
+            + ("" if self.rigid_motion == "time" else f", rigid_motion={self.rigid_motion!r}")
         )
 
 
-__all__ = ["DecoupledDeformation", "canonical_batch", "check_like_gaussians"]
+__all__ = [
+    "RIGID_MOTIONS",
+    "DecoupledDeformation",
+    "RigidMotion",
+    "canonical_batch",
+    "check_like_gaussians",
+]

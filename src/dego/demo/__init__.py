@@ -25,6 +25,7 @@ from dego.demo.evaluate import (
     to_ego,
 )
 from dego.demo.fit import (
+    EXTENSION_VARIANTS,
     LOSS_TERMS,
     REFERENCE_VARIANTS,
     ROW_NAMES,
@@ -69,6 +70,7 @@ __all__ = [
     "ALLOCATIONS",
     "DEMO_FRAME_DT",
     "DYNAMIC_GROUPS",
+    "EXTENSION_VARIANTS",
     "LIFT_SCALE",
     "LOSS_TERMS",
     "MOVABLE_CLASSES",

@@ -31,13 +31,25 @@ from dego.losses import rendering_loss
 from dego.splatting import SplatOutput, splat
 
 Variant = Literal[
-    "static", "rigid", "decoupled", "single-frame", "free-offsets", "free-velocities", "true-motion"
+    "static",
+    "rigid",
+    "decoupled",
+    "velocity",
+    "single-frame",
+    "free-offsets",
+    "free-velocities",
+    "true-motion",
 ]
 VARIANTS: tuple[Variant, ...] = ("static", "rigid", "decoupled")
 """The fitted variants. ``static``: no deformation at all (the canonical Gaussians are used
 at every frame; only the ego moves); ``rigid``: position offsets only (rigidity mask fixed
 at 0, the GaussianFlowOcc-style baseline); ``decoupled``: DeGO's learned rigid / nonrigid
 mask and full deformation."""
+
+EXTENSION_VARIANTS: tuple[Variant, ...] = ("velocity",)
+"""Ours, beyond the paper. ``velocity``: ``decoupled`` with a constant-velocity rigid branch
+(:class:`~dego.DecoupledDeformation` ``rigid_motion="velocity"``: one velocity per Gaussian
+from its features, offset ``t v``), the nonrigid branch as in the paper."""
 
 REFERENCE_VARIANTS: tuple[Variant, ...] = (
     "single-frame",
@@ -219,7 +231,8 @@ class FitResult:
     """What :func:`fit_scene` returns.
 
     Attributes:
-        variant: ``"static"``, ``"rigid"`` or ``"decoupled"``.
+        variant: the fitted variant (:data:`VARIANTS`, :data:`EXTENSION_VARIANTS`,
+            :data:`REFERENCE_VARIANTS`).
         model: the fitted canonical Gaussians. deformation: the fitted network
             (``None`` for ``static``).
         history: per-iteration values of each term in :data:`LOSS_TERMS`.
@@ -263,14 +276,14 @@ def build_deformation(
     scene: SyntheticScene | None = None,
 ) -> DecoupledDeformation | FrameOffsets | None:
     """The deformation of ``variant``: the ``paper``-preset network (``rigid``:
-    ``fixed_mask=0``), :func:`~dego.demo.offsets.free_offsets` (``free-offsets``),
+    ``fixed_mask=0``; ``velocity``: ``rigid_motion="velocity"``),
+    :func:`~dego.demo.offsets.free_offsets` (``free-offsets``),
     :func:`~dego.demo.offsets.free_velocities` (``free-velocities``), the
     oracle :func:`~dego.demo.offsets.true_motion` (``true-motion``: needs the canonical
     ``means`` and the clip's ``scene``), or ``None`` (``static``, ``single-frame``)."""
-    if variant not in VARIANTS + REFERENCE_VARIANTS:
-        raise ValueError(
-            f"variant: expected one of {VARIANTS + REFERENCE_VARIANTS}, got {variant!r}"
-        )
+    known = VARIANTS + EXTENSION_VARIANTS + REFERENCE_VARIANTS
+    if variant not in known:
+        raise ValueError(f"variant: expected one of {known}, got {variant!r}")
     if variant in ("static", "single-frame"):
         return None
     if variant == "true-motion":
@@ -293,6 +306,7 @@ def build_deformation(
         time_scale=largest_offset,
         pos_scale=config.pos_scale,
         fixed_mask=0.0 if variant == "rigid" else None,
+        rigid_motion="velocity" if variant == "velocity" else "time",
         loss_weights=DeformationLossWeights(reduction=config.regulariser),  # type: ignore[arg-type]
     )
 
@@ -388,7 +402,8 @@ def fit_scene(
     if deformation is not None:
         deformation = deformation.to(clip.depth.device)
     free = variant in ("free-offsets", "free-velocities")
-    if (variant in ("rigid", "decoupled") or free) and config.deform == "movable":
+    networked = variant in ("rigid", "decoupled", *EXTENSION_VARIANTS)
+    if (networked or free) and config.deform == "movable":
         model.deform_classes = MOVABLE_CLASSES
     groups = [
         {"params": [getattr(model, name)], "lr": config.lr[name]}

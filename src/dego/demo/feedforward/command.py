@@ -16,6 +16,7 @@ from dego._cli_args import (
     MAX_ITERATIONS,
     ProgressBar,
     add_device,
+    bounded_float,
     bounded_int,
     config_error,
     format_ints,
@@ -24,28 +25,31 @@ from dego._cli_args import (
     output_dir,
 )
 from dego._version import __version__
-from dego.demo.feedforward.data import default_cache
+from dego.demo.feedforward.data import MAX_CLIP_SECONDS, default_cache
 from dego.demo.feedforward.study import (
     PRESETS,
     FeedForwardStudyConfig,
     run_feedforward_study,
     write_feedforward_study,
 )
-from dego.demo.feedforward.training import FEEDFORWARD_VARIANTS
+from dego.demo.feedforward.training import DEPTH_SOURCES, FEEDFORWARD_VARIANTS, RECIPES
 
 DESCRIPTION = (
     "The paper's regime in miniature: one small CNN predicts a Gaussian per image block of "
-    "six cameras for every synthetic scene, trained from pseudo labels only with dego's "
-    "splatting and weak losses, as single-frame, static, rigid, decoupled (DeGO) and the "
-    "true-motion oracle; scored on held-out scenes at t = 0 (IoU, mIoU, InsM, ScnM, HCM, "
-    "RayIoU, moving agents). Writes train.md, train.json and pictures."
+    "six cameras for every synthetic scene (frames 0.5 s apart, as nuScenes' keyframes), "
+    "trained from pseudo labels only with dego's splatting and losses: a shared "
+    "single-frame warm-up, then single-frame, static, rigid, decoupled (DeGO), velocity "
+    "(a constant-velocity rigid branch, beyond the paper) and the true-motion oracle "
+    "fine-tuned from it; scored on held-out scenes at t = 0 (IoU, mIoU, InsM, ScnM, HCM, "
+    "RayIoU, moving agents, people voxels and blocks). Writes train.md, train.json and "
+    "pictures."
 )
 
 TRAIN_DURATION = (
-    "the default (one seed, five variants of 800 steps) took 16.5 minutes on 2 idle CPU "
-    "cores with its 80 scenes cached, plus 2.5 minutes to render them the first time; "
-    "another job on the same cores can make it several times slower (torch threads "
-    "compete); --quick took about a minute beside another job"
+    "one seed (render its 80 scenes, a 400-step warm-up, six variants of 100 steps) took "
+    "8.5-8.8 minutes on one thread of the 2-core CPU machine with a second run on the "
+    "other core, 2.5-3 of them rendering the scenes the first time; --full (seeds 0-4) "
+    "took 42 minutes that way; --quick took 10 s on 2 idle cores"
 )
 """How long ``dego train`` takes, as its ``--help`` and docs/feedforward.md say it."""
 
@@ -68,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     size.add_argument(
         "--full",
         action="store_true",
-        help=f"the study: seeds {format_ints(full.seeds)} (for a GPU: --device cuda)",
+        help=f"the study: seeds {format_ints(full.seeds)} (about 42 minutes on one CPU thread)",
     )
     parser.add_argument(
         "--seeds", type=int_list, help=f"seeds, e.g. 0-2 ({format_ints(default.seeds)})"
@@ -81,7 +85,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument(
         "--steps",
         type=bounded_int(0, MAX_ITERATIONS),
-        help=f"optimiser steps per variant ({default.train.steps})",
+        help=f"each variant's own optimiser steps ({default.train.steps})",
+    )
+    parser.add_argument(
+        "--warmup-steps",
+        type=bounded_int(0, MAX_ITERATIONS),
+        help=f"steps of the shared single-frame warm-up ({default.train.warmup_steps})",
+    )
+    parser.add_argument(
+        "--recipe",
+        choices=RECIPES,
+        help="paired: every variant fine-tuned from the shared warm-up; scratch: each "
+        f"trained from the initial weights for warm-up + steps ({default.train.recipe})",
+    )
+    parser.add_argument(
+        "--depth",
+        choices=DEPTH_SOURCES,
+        help="anchored: each Gaussian's depth along its ray is the t = 0 pseudo depth at its "
+        f"pixel; learned: the network's ({default.train.depth_source})",
+    )
+    parser.add_argument(
+        "--frames",
+        type=bounded_int(3, 81),
+        help=f"frames per scene, odd, the reference in the middle ({default.data.frames})",
+    )
+    parser.add_argument(
+        "--frame-dt",
+        type=bounded_float(0.0, MAX_CLIP_SECONDS, open_low=True),
+        help=f"seconds between frames ({default.data.frame_dt}; 0.2: the demo's spacing)",
+    )
+    parser.add_argument(
+        "--depth-noise",
+        type=bounded_float(0.0, 0.99),
+        help="pseudo-depth noise, the relative error at 10 m growing with distance "
+        f"({default.data.depth_noise:g}: exact)",
     )
     parser.add_argument(
         "--train-scenes",
@@ -118,13 +155,23 @@ def study_config(args: argparse.Namespace) -> FeedForwardStudyConfig:
         changes["variants"] = args.variants
     data = {
         name: getattr(args, name)
-        for name in ("train_scenes", "heldout_scenes")
+        for name in ("train_scenes", "heldout_scenes", "frames", "frame_dt", "depth_noise")
         if getattr(args, name) is not None
     }
     if data:
         changes["data"] = dataclasses.replace(base.data, **data)
-    if args.steps is not None:
-        changes["train"] = dataclasses.replace(base.train, steps=args.steps)
+    train = {
+        field: getattr(args, flag)
+        for field, flag in (
+            ("steps", "steps"),
+            ("warmup_steps", "warmup_steps"),
+            ("recipe", "recipe"),
+            ("depth_source", "depth"),
+        )
+        if getattr(args, flag) is not None
+    }
+    if train:
+        changes["train"] = dataclasses.replace(base.train, **train)
     return dataclasses.replace(base, **changes)
 
 
@@ -147,11 +194,13 @@ def run_command(
         except OSError as error:
             parser.error(f"--cache: {cache}: {error.strerror or error}")
     created += output_dir(parser, "--out", args.out)
-    data, steps = config.data, config.train.steps
+    data, training = config.data, config.train
     print(
         f"dego {__version__} train: seeds {format_ints(config.seeds)}, variants "
         f"{', '.join(config.variants)}; {data.train_scenes} training + {data.heldout_scenes} "
-        f"held-out scenes per seed, {steps} steps per variant, {args.device}; scenes cached in "
+        f"held-out scenes per seed of {data.frames} frames {data.frame_dt:g} s apart; "
+        f"{training.recipe} recipe ({training.warmup_steps} warm-up + {training.steps} steps), "
+        f"depth {training.depth_source}; {args.device}; scenes cached in "
         f"{cache if cache is not None else '(nowhere: --no-cache)'}",
         flush=True,
     )

@@ -30,13 +30,24 @@ from dego._checks import check_int, check_positive
 from dego._npz import read_npz, write_npz
 from dego._version import __version__
 from dego.data.synthetic import SyntheticScene
-from dego.demo.clip import DEMO_FRAME_DT, DemoClip
+from dego.demo.clip import DEMO_FRAME_DT, MAX_DEMO_FRAMES, DemoClip
 from dego.demo.fit import MAX_SEED
 from dego.demo.offsets import agent_translations
 from dego.grid import VoxelGrid
 
 CACHE_FORMAT = 1
 """Bumped whenever :class:`SceneRecord`'s file layout changes (part of the cache digest)."""
+
+FEEDFORWARD_FRAME_DT = 0.5
+"""Seconds between the frames of ``dego train``'s scenes: nuScenes' keyframe spacing (the
+paper's 12 deformed frames span 6 s). At the demo's 0.2 s
+(:data:`~dego.demo.DEMO_FRAME_DT`, kept as ``--frame-dt 0.2``) a pedestrian moves less than a
+voxel between frames and static supervision has little to get wrong."""
+
+MAX_CLIP_SECONDS = (MAX_DEMO_FRAMES // 2) * DEMO_FRAME_DT
+"""The largest time from the reference to a clip's outermost frame the synthetic world
+covers: the ego drives 5 m/s, the Occ3D grid reaches 40 m ahead and its ground ends at
+80 m (:data:`~dego.demo.MAX_DEMO_FRAMES`)."""
 
 TRAIN_SPLIT, HELDOUT_SPLIT = 0, 1
 
@@ -47,26 +58,43 @@ class DataConfig:
 
     Attributes:
         train_scenes, heldout_scenes: scenes per split (training / held-out evaluation).
-        frames: frames per scene, offsets ``-(frames // 2) ..`` (3: ``-1, 0, +1``).
+        frames: frames per scene, odd and >= 3, centred on the reference: offsets
+            ``-(frames // 2) .. frames // 2`` (3: ``-1, 0, +1``).
         image_size: ``(H, W)`` of the six cameras.
-        frame_dt: seconds between frames (:data:`~dego.demo.DEMO_FRAME_DT`).
+        frame_dt: seconds between frames (:data:`FEEDFORWARD_FRAME_DT`); the outermost
+            frame may be at most :data:`MAX_CLIP_SECONDS` from the reference.
+        depth_noise: the pseudo depth's noise, :class:`~dego.data.SyntheticScene`'s
+            ``depth_noise`` (0: exact depth).
     """
 
     train_scenes: int = 64
     heldout_scenes: int = 16
     frames: int = 3
     image_size: tuple[int, int] = (64, 176)
-    frame_dt: float = DEMO_FRAME_DT
+    frame_dt: float = FEEDFORWARD_FRAME_DT
+    depth_noise: float = 0.0
 
     def __post_init__(self) -> None:
         check_int("train_scenes", self.train_scenes, 1)
         check_int("heldout_scenes", self.heldout_scenes, 1)
-        check_int("frames", self.frames, 2)
+        check_int("frames", self.frames, 3)
+        if self.frames % 2 == 0:
+            raise ValueError(
+                f"frames: expected an odd number (the reference in the middle), got {self.frames}"
+            )
         if len(self.image_size) != 2:
             raise ValueError(f"image_size: expected (H, W), got {self.image_size!r}")
         for value in self.image_size:
             check_int("image_size", value, 8)
         check_positive("frame_dt", self.frame_dt)
+        span = self.frames // 2 * self.frame_dt
+        if span > MAX_CLIP_SECONDS + 1e-9:
+            raise ValueError(
+                f"frame_dt: {self.frames} frames {self.frame_dt} s apart reach {span:g} s from "
+                f"the reference; the synthetic world covers at most {MAX_CLIP_SECONDS:g} s"
+            )
+        if not 0 <= self.depth_noise < 1:
+            raise ValueError(f"depth_noise: expected a number in [0, 1), got {self.depth_noise!r}")
 
     def render_settings(self) -> dict[str, object]:
         """What a cached scene depends on besides its seed (the cache digest's input)."""
@@ -76,6 +104,7 @@ class DataConfig:
             "frames": self.frames,
             "image_size": list(self.image_size),
             "frame_dt": self.frame_dt,
+            "depth_noise": self.depth_noise,
         }
 
     def digest(self) -> str:
@@ -272,6 +301,7 @@ def load_scenes(
                 num_frames=config.frames,
                 frame_dt=config.frame_dt,
                 image_size=config.image_size,
+                depth_noise=config.depth_noise,
             )
             record = SceneRecord.from_scene(scene)
             if path is not None:

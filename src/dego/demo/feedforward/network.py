@@ -6,6 +6,13 @@ ray through the block (a log-uniform range), a shift inside the block, three sca
 rotation (in the camera frame, turned into the world frame), an opacity, class logits and a
 latent feature for the deformation network. The means are the rays' points at that depth,
 so the Gaussians start where the cameras look and the images only decide how far.
+
+With ``anchor_depth`` (a depth map of the same frame, e.g. the t = 0 pseudo depth, which
+inference has too: it comes from the same images), each Gaussian's distance along its ray is
+that map's depth at the pixel it projects to, where the map has a surface; the network's
+own depth is kept elsewhere (sky, pixels without a depth). Every other parameter stays
+predicted. A depth-anchored predictor is our departure from the paper (see
+docs/feedforward.md).
 """
 
 from __future__ import annotations
@@ -21,6 +28,11 @@ from torch import Tensor, nn
 from dego._checks import check_int
 from dego.classes import FREE_LABEL
 from dego.gaussians import GaussianSet, quaternion_multiply, rotation_matrices_to_quaternions
+
+SCALE_FLOOR = 0.1
+"""The smallest scale :class:`GaussianPredictor` predicts by default, metres: a quarter of an
+Occ3D voxel. Flatter Gaussians fall between the voxeliser's samples 0.4 m apart and vanish
+from the occupancy grid while still rendering well."""
 
 CLASSES = FREE_LABEL
 """Class logits per Gaussian: the 17 Occ3D classes other than free (free space is what the
@@ -51,7 +63,8 @@ class GaussianPredictor(nn.Module):
         width: channels of the first stage (doubled once, at the second).
         latent_dim: latent channels per Gaussian.
         depth_range: ``(near, far)`` metres of the predicted depth (log-uniform).
-        scale_range: ``(smallest, largest)`` scale in metres.
+        scale_range: ``(smallest, largest)`` scale in metres (the floor:
+            :data:`SCALE_FLOOR`).
     """
 
     def __init__(
@@ -61,7 +74,7 @@ class GaussianPredictor(nn.Module):
         width: int = 32,
         latent_dim: int = 16,
         depth_range: tuple[float, float] = (1.0, 60.0),
-        scale_range: tuple[float, float] = (0.02, 1.0),
+        scale_range: tuple[float, float] = (SCALE_FLOOR, 1.0),
     ) -> None:
         super().__init__()
         check_int("block", block, 2)
@@ -109,8 +122,14 @@ class GaussianPredictor(nn.Module):
         images: Float[Tensor, "B V 3 H W"],
         world_to_cam: Float[Tensor, "B V 4 4"],
         intrinsics: Float[Tensor, "B V 3 3"],
+        anchor_depth: Float[Tensor, "B V H W"] | None = None,
     ) -> Prediction:
-        """Predict the Gaussians of each of ``B`` frames from its ``V`` images."""
+        """Predict the Gaussians of each of ``B`` frames from its ``V`` images.
+
+        ``anchor_depth``: ``(B, V, H, W)`` z-depth of each image (0: no surface); where it
+        is > 0 at a Gaussian's pixel, that depth replaces the predicted one (see the
+        module docstring). ``None``: every depth is predicted.
+        """
         if images.ndim != 5 or images.shape[2] != 3:
             raise ValueError(f"images: expected (B, V, 3, H, W), got {tuple(images.shape)}")
         b, v, _, h, w = images.shape
@@ -119,6 +138,11 @@ class GaussianPredictor(nn.Module):
                 f"world_to_cam, intrinsics: expected ({b}, {v}, 4, 4) and ({b}, {v}, 3, 3) "
                 f"for images {tuple(images.shape)}, got {tuple(world_to_cam.shape)} and "
                 f"{tuple(intrinsics.shape)}"
+            )
+        if anchor_depth is not None and anchor_depth.shape != (b, v, h, w):
+            raise ValueError(
+                f"anchor_depth: expected ({b}, {v}, {h}, {w}) like images, got "
+                f"{tuple(anchor_depth.shape)}"
             )
         flat = images.reshape(b * v, 3, h, w)
         rows = torch.linspace(-1, 1, h, device=images.device, dtype=images.dtype)
@@ -146,6 +170,8 @@ class GaussianPredictor(nn.Module):
         )
         centres = (torch.stack([u_index, v_index], -1) + 0.5) * cell  # (h', w', 2) pixels
         pixels = centres + torch.tanh(shift) * cell / 2
+        if anchor_depth is not None:
+            depth = _anchored(depth, anchor_depth.to(depth.dtype), pixels.detach())
         homogeneous = torch.cat([pixels, torch.ones_like(pixels[..., :1])], -1)
         rays = torch.einsum("bvij,bvhwj->bvhwi", torch.linalg.inv(intrinsics), homogeneous)
         cam_to_world = torch.linalg.inv(world_to_cam)
@@ -167,3 +193,15 @@ class GaussianPredictor(nn.Module):
             features=torch.softmax(logits, -1),
         )
         return Prediction(gaussians, logits, latent.reshape(b, n, self.latent_dim))
+
+
+def _anchored(
+    depth: Float[Tensor, "B V h w 1"], anchor: Float[Tensor, "B V H W"], pixels: Tensor
+) -> Float[Tensor, "B V h w 1"]:
+    """``depth`` with ``anchor``'s value at each cell's pixel ``(u, v)`` where it is > 0."""
+    b, v, height, width = anchor.shape
+    cols = pixels[..., 0].floor().long().clamp(0, width - 1)
+    rows = pixels[..., 1].floor().long().clamp(0, height - 1)
+    index = (rows * width + cols).reshape(b, v, -1)
+    found = anchor.reshape(b, v, -1).gather(-1, index).reshape(depth.shape)
+    return torch.where(found > 0, found, depth)

@@ -1,8 +1,9 @@
 """``dego train``: the feed-forward variants over seeds, scored on held-out scenes at t = 0.
 
-For every seed: its own training and held-out scenes (:func:`scene_seeds`), then every
-variant trained from the same initial weights on the same scenes in the same order, and
-scored on the held-out scenes. The report gives means with 95% t-intervals over seeds and
+For every seed: its own training and held-out scenes (:func:`scene_seeds`), then (the
+``paired`` recipe) one single-frame warm-up and every variant fine-tuned from it on the same
+scenes, frames and cameras in the same order (``scratch``: from the same initial weights),
+and scored on the held-out scenes. The report gives means with 95% t-intervals over seeds and
 paired differences (same seed), as ``dego study`` does.
 """
 
@@ -28,8 +29,14 @@ from dego.demo.feedforward.data import (
     load_scenes,
     scene_seeds,
 )
-from dego.demo.feedforward.evaluate import SCORES, predict_scene_labels, score_scenes
-from dego.demo.feedforward.training import FEEDFORWARD_VARIANTS, TrainConfig, predict, train
+from dego.demo.feedforward.evaluate import SCORES, predict_scene, score_scenes
+from dego.demo.feedforward.training import (
+    FEEDFORWARD_VARIANTS,
+    TrainConfig,
+    predict,
+    train,
+    warm_up,
+)
 from dego.demo.fit import row_name
 from dego.demo.stats import (
     MIN_INTERVAL_SEEDS,
@@ -73,31 +80,44 @@ PRESETS: dict[str, FeedForwardStudyConfig] = {
     "quick": FeedForwardStudyConfig(
         seeds=(0,),
         data=DataConfig(train_scenes=2, heldout_scenes=1, image_size=(32, 88)),
-        train=TrainConfig(steps=3, block=8, width=8, hidden_dim=16, head_hidden=16),
+        train=TrainConfig(steps=3, warmup_steps=3, block=8, width=8, hidden_dim=16, head_hidden=16),
     ),
     "cpu": FeedForwardStudyConfig(),
-    "full": FeedForwardStudyConfig(seeds=(0, 1, 2)),
+    "full": FeedForwardStudyConfig(seeds=(0, 1, 2, 3, 4)),
 }
 """``dego train --quick`` (the wiring only: a few steps on two tiny scenes), the default
-(one seed, sized for a CPU) and ``--full`` (three seeds, the study with intervals)."""
+(one seed, sized for a CPU) and ``--full`` (seeds 0-4, the study with intervals)."""
 
 COMPARISONS = (
     ("static", "single-frame"),
-    ("decoupled", "static"),
-    ("rigid", "static"),
-    ("decoupled", "rigid"),
     ("true-motion", "static"),
+    ("decoupled", "static"),
+    ("velocity", "static"),
+    ("rigid", "static"),
+    ("velocity", "decoupled"),
+    ("decoupled", "rigid"),
     ("decoupled", "single-frame"),
+    ("velocity", "single-frame"),
 )
 """Paired differences of the report (first - second, same seed). ``static -
 single-frame``: what the other frames' labels do to t = 0 without a motion model (the harm
-the paper's deformation removes); ``decoupled - static``: whether the deformation wins it
-back; ``true-motion - static``: what ground-truth motion would have bought."""
+the paper's deformation removes); ``true-motion - static``: what ground-truth motion wins
+back; ``decoupled - static`` / ``velocity - static``: what DeGO's deformation and our
+constant-velocity one win back."""
 
-PAIRED_SCORES = ("HCM", "mIoU", "articulated", "vehicles", "IoU", "RayIoU")
+PAIRED_SCORES = (
+    "HCM",
+    "mIoU",
+    "people voxels",
+    "people blocks",
+    "articulated",
+    "vehicles",
+    "IoU",
+    "RayIoU",
+)
 """The scores of the paired-difference table."""
 
-PER_SEED_SCORES = ("mIoU", "HCM", "vehicles", "articulated")
+PER_SEED_SCORES = ("mIoU", "HCM", "people voxels", "articulated")
 """The scores of the per-seed table."""
 
 PICTURED_SCENE = 0
@@ -108,12 +128,14 @@ PICTURED_SCENE = 0
 class FeedForwardRuns:
     """What :func:`run_feedforward_study` returns: one :class:`~dego.demo.stats.StudyRun` per
     (seed, variant), its ``budget`` the Gaussians per scene, and the first seed's labels of
-    the pictured held-out scene per variant (with that scene) for pictures."""
+    the pictured held-out scene per variant (with that scene) for pictures; the seconds
+    spent on scenes and on the shared warm-ups."""
 
     runs: list[StudyRun]
     pictured_labels: dict[str, Tensor]
     pictured_scene: SceneRecord | None
     data_seconds: float
+    warmup_seconds: float = 0.0
 
 
 def run_feedforward_study(
@@ -133,7 +155,7 @@ def run_feedforward_study(
     runs: list[StudyRun] = []
     pictured: dict[str, Tensor] = {}
     pictured_scene = None
-    data_seconds = 0.0
+    data_seconds = warmup_seconds = 0.0
     for seed in config.seeds:
         start = time.perf_counter()
         data = config.data
@@ -155,20 +177,46 @@ def run_feedforward_study(
                 f"ready ({time.perf_counter() - start:.1f} s)"
             )
         settings = dataclasses.replace(config.train, seed=seed)
+        start_network = None
+        if settings.recipe == "paired":
+
+            def warm_step(
+                index: int,
+                loss: float,
+                label: str = f"{seed}/warm-up",
+                total: int = settings.warmup_steps,
+            ) -> None:
+                if progress is not None:
+                    progress(label, index, total, loss)
+
+            warm = warm_up(train_set, settings, progress=warm_step)
+            start_network, warmup_seconds = warm.network, warmup_seconds + warm.seconds
+            if note is not None:
+                note(
+                    f"seed {seed}: single-frame warm-up, {settings.warmup_steps} steps "
+                    f"({warm.seconds:.0f} s)"
+                )
+        steps = settings.steps if settings.recipe == "paired" else settings.total_steps
         for variant in config.variants:
             label = f"{seed}/{variant}"
 
-            def step(
-                index: int, loss: float, label: str = label, steps: int = settings.steps
-            ) -> None:
+            def step(index: int, loss: float, label: str = label, total: int = steps) -> None:
                 if progress is not None:
-                    progress(label, index, steps, loss)
+                    progress(label, index, total, loss)
 
-            result = train(train_set, variant, settings, progress=step)  # type: ignore[arg-type]
-            labels = [predict_scene_labels(result.network, r) for r in heldout]
-            scores = score_scenes(labels, heldout)
+            result = train(
+                train_set,
+                variant,  # type: ignore[arg-type]
+                settings,
+                start=start_network,
+                progress=step,
+            )
+            predicted = [predict_scene(result.network, r, settings.depth_source) for r in heldout]
+            labels = [grid for grid, _ in predicted]
+            scores = score_scenes(labels, heldout, [people for _, people in predicted])
             with torch.no_grad():
-                gaussians = predict(result.network, heldout[0]).gaussians.num_gaussians
+                prediction = predict(result.network, heldout[0], settings.depth_source)
+                gaussians = prediction.gaussians.num_gaussians
             runs.append(StudyRun(seed, gaussians, variant, scores, {}, math.nan, result.seconds))
             if seed == config.seeds[0]:
                 pictured[variant] = labels[PICTURED_SCENE].cpu()
@@ -176,10 +224,10 @@ def run_feedforward_study(
             if note is not None:
                 note(
                     f"seed {seed} {row_name(variant)}: mIoU {scores['mIoU']:.1f}, HCM "
-                    f"{scores['HCM']:.1f}, articulated {scores['articulated']:.1f} "
-                    f"({result.seconds:.0f} s)"
+                    f"{scores['HCM']:.1f}, people voxels {scores['people voxels']:.0f}%, "
+                    f"articulated {scores['articulated']:.1f} ({result.seconds:.0f} s)"
                 )
-    return FeedForwardRuns(runs, pictured, pictured_scene, data_seconds)
+    return FeedForwardRuns(runs, pictured, pictured_scene, data_seconds, warmup_seconds)
 
 
 def summarise(runs: Sequence[StudyRun]) -> dict[str, dict[str, Interval]]:
@@ -218,10 +266,10 @@ def feedforward_report(
         f"Seeds {list(config.seeds)}; per seed {data.train_scenes} training and "
         f"{data.heldout_scenes} held-out synthetic scenes of {data.frames} frames "
         f"({data.frame_dt} s apart, {data.image_size[0]}x{data.image_size[1]} pixels, six "
-        f"cameras); {training.steps} steps per variant, {gaussians} Gaussians per scene; "
-        f"{device}, {wall_seconds:.0f} s wall in all. Held-out scenes at t = 0 (inference: "
-        "one frame of images), weak protocol inside the camera mask, percent, mean [95% "
-        "t-interval over seeds].",
+        f"cameras{_noise(data.depth_noise)}); {_recipe(training)}; {gaussians} Gaussians per "
+        f"scene, depth {_depth(training)}; {device}, {wall_seconds:.0f} s wall in all. "
+        "Held-out scenes at t = 0 (inference: one frame of images), weak protocol inside the "
+        "camera mask, percent, mean [95% t-interval over seeds].",
     ]
     if len(config.seeds) < MIN_INTERVAL_SEEDS:
         lines += [
@@ -265,7 +313,7 @@ def feedforward_report(
             for v in variants
         ]
         lines.append(f"| {seed} | " + " | ".join(cells) + " |")
-    lines += ["", "## Reading", "", *_reading(differences)]
+    lines += ["", "## Reading", "", *_reading(differences), *_won_back(runs)]
     payload = {
         "units": UNIT,
         "settings": {
@@ -276,6 +324,7 @@ def feedforward_report(
             "device": device,
             "wall_seconds": wall_seconds,
             "data_seconds": result.data_seconds,
+            "warmup_seconds": result.warmup_seconds,
         },
         "runs": [dataclasses.asdict(r) for r in runs],
         "summary": {
@@ -286,17 +335,101 @@ def feedforward_report(
             for (a, b), d in differences.items()
             for s, i in d.items()
         },
+        "won_back": {
+            v: {"share": share, "at_least_half": dataclasses.asdict(half)}
+            for v in RECOVERING
+            if (found := won_back(runs, v)) is not None
+            for share, half in [found]
+        },
     }
     return "\n".join(lines) + "\n", payload
 
 
+def _noise(depth_noise: float) -> str:
+    return f", pseudo depth noise {depth_noise:g}" if depth_noise else ""
+
+
+def _depth(training: TrainConfig) -> str:
+    if training.depth_source == "anchored":
+        return "anchored on the t = 0 pseudo depth"
+    return "learned"
+
+
+def _recipe(training: TrainConfig) -> str:
+    if training.recipe == "paired":
+        return (
+            f"a shared single-frame warm-up of {training.warmup_steps} steps, then "
+            f"{training.steps} steps per variant from it"
+        )
+    return f"{training.total_steps} steps per variant from the initial weights"
+
+
 QUESTIONS = (
     ("static", "single-frame", "HCM", "do the other frames' labels harm t = 0 without motion?"),
+    ("true-motion", "static", "HCM", "does the true motion win it back?"),
     ("decoupled", "static", "HCM", "does DeGO's deformation win it back?"),
-    ("decoupled", "static", "mIoU", "and on mIoU?"),
-    ("true-motion", "static", "HCM", "what would ground-truth motion have bought?"),
+    ("velocity", "static", "HCM", "does the constant-velocity deformation win it back?"),
+    ("decoupled", "static", "mIoU", "and DeGO's on mIoU?"),
+    ("velocity", "decoupled", "HCM", "velocity or DeGO's time-conditioned rigid branch?"),
 )
 """The questions the reading answers, one paired difference each."""
+
+RECOVERING = ("true-motion", "decoupled", "velocity", "rigid")
+"""The variants whose share of the harm won back the reading gives (:func:`won_back`)."""
+
+WON_BACK_SCORE = "HCM"
+"""The score of :func:`won_back`."""
+
+
+def won_back(
+    runs: Sequence[StudyRun], variant: str, score: str = WON_BACK_SCORE
+) -> tuple[float, Interval] | None:
+    """How much of the harm ``static - single-frame`` ``variant`` wins back on ``score``.
+
+    Returns ``(share, half)``: ``share = mean(variant - static) / mean(single-frame -
+    static)`` (1: all of it; NaN where the mean harm is not negative) and the interval over
+    seeds of ``(variant - static) - (single-frame - static) / 2`` per seed: above 0 means at
+    least half of the harm is won back. ``None`` without the three variants.
+    """
+    table = {(r.seed, r.variant): r.scores[score] for r in runs}
+    needed = (variant, "static", "single-frame")
+    seeds = sorted({s for s, _ in table if all((s, v) in table for v in needed)})
+    if not seeds:
+        return None
+    gains = [table[s, variant] - table[s, "static"] for s in seeds]
+    harms = [table[s, "single-frame"] - table[s, "static"] for s in seeds]
+    harm = sum(harms) / len(harms)
+    share = (sum(gains) / len(gains)) / harm if harm > 0 else math.nan
+    half = mean_interval([g - h / 2 for g, h in zip(gains, harms, strict=True)])
+    return share, half
+
+
+def _won_back(runs: Sequence[StudyRun]) -> list[str]:
+    out = []
+    for variant in RECOVERING:
+        found = won_back(runs, variant)
+        if found is None:
+            continue
+        share, half = found
+        if math.isnan(share):
+            out.append(
+                f"- {row_name(variant)}: static did not score below single-frame on "
+                f"{WON_BACK_SCORE}, so there is no harm to win back."
+            )
+            continue
+        if half.n < MIN_INTERVAL_SEEDS:
+            verdict = "too few seeds for an interval"
+        elif half.low > 0:
+            verdict = "at least half, the interval excludes 0"
+        elif half.high < 0:
+            verdict = "less than half, the interval excludes 0"
+        else:
+            verdict = "whether it is at least half is not resolved"
+        out.append(
+            f"- {row_name(variant)} wins back {share:.0%} of the harm on {WON_BACK_SCORE} "
+            f"(gain minus half the harm, per seed: {half} points; {verdict})."
+        )
+    return out
 
 
 def _reading(differences: dict[tuple[str, str], dict[str, Interval]]) -> list[str]:

@@ -27,6 +27,8 @@ COMPARISONS = (
     ("rigid", "static"),
     ("decoupled", "rigid"),
     ("decoupled+prior", "decoupled"),
+    ("velocity", "static"),
+    ("velocity", "decoupled"),
     ("free-offsets", "static"),
     ("free-velocities", "static"),
     ("true-motion", "static"),
@@ -79,7 +81,7 @@ def study_report(runs: Sequence[StudyRun], config: StudyConfig) -> tuple[str, di
             "and ROC-AUC in [0, 1], not percent:",
             "",
         ]
-        masked = {v: s for v, s in variants.items() if v.startswith("decoupled")}
+        masked = {v: s for v, s in variants.items() if v.startswith("decoupled") or v == "velocity"}
         if masked:
             lines += _interval_table(masked, (*MASK_METRICS, "Gaussians per articulated agent"))
         payload["summary"][budget] = {

@@ -33,18 +33,23 @@ STUDY_VARIANTS = (
     "rigid",
     "decoupled",
     "decoupled+prior",
+    "velocity",
     "free-offsets",
     "free-velocities",
     "true-motion",
 )
-""":data:`~dego.demo.VARIANTS` and :data:`~dego.demo.REFERENCE_VARIANTS`, the
-``lifted-labels`` ceiling (no fit: each frame's pseudo labels lifted to 3D), and
+""":data:`~dego.demo.VARIANTS`, :data:`~dego.demo.EXTENSION_VARIANTS` (``velocity``, ours)
+and :data:`~dego.demo.REFERENCE_VARIANTS`, the ``lifted-labels`` ceiling (no fit: each
+frame's pseudo labels lifted to 3D), and
 ``decoupled+prior``: ``decoupled`` with :attr:`StudyConfig.mask_prior` as the weight of
 the mask sparsity prior (:attr:`~dego.demo.FitConfig.mask_sparsity`). ``true-motion``
 uses the ground truth (a ceiling, not a competitor)."""
 
-DEFAULT_STUDY_VARIANTS = tuple(v for v in STUDY_VARIANTS if v != "decoupled+prior")
-"""What ``dego study`` fits unless told otherwise (``--variants``)."""
+DEFAULT_STUDY_VARIANTS = tuple(
+    v for v in STUDY_VARIANTS if v not in ("decoupled+prior", "velocity")
+)
+"""What ``dego study`` fits unless told otherwise (``--variants``; ``velocity`` and
+``decoupled+prior`` on request)."""
 
 METRICS = (
     "IoU t=0",
