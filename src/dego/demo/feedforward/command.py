@@ -25,6 +25,7 @@ from dego._cli_args import (
     output_dir,
 )
 from dego._version import __version__
+from dego.demo.clip import MAX_DEMO_FRAMES
 from dego.demo.feedforward.data import MAX_CLIP_SECONDS, default_cache
 from dego.demo.feedforward.study import (
     PRESETS,
@@ -106,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--frames",
-        type=bounded_int(3, 81),
+        type=bounded_int(3, MAX_DEMO_FRAMES),
         help=f"frames per scene, odd, the reference in the middle ({default.data.frames})",
     )
     parser.add_argument(

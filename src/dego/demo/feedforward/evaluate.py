@@ -16,6 +16,7 @@ from dego.demo.evaluate import DYNAMIC_GROUPS, DynamicCounts, dynamic_counts
 from dego.demo.feedforward.data import SceneRecord
 from dego.demo.feedforward.network import GaussianPredictor, Prediction
 from dego.demo.feedforward.training import DepthSource, predict
+from dego.demo.fit import most_likely_in
 from dego.demo.score import VariantScore, predict_labels
 from dego.metrics import OccupancyMetrics, RayIoU
 
@@ -94,7 +95,7 @@ def people_counts(
     )  # (V, K + 1, h', w'): edge blocks count the pixels they have
     block_label = histogram.argmax(1).flatten()  # camera, row, column order
     people_blocks = _people(block_label)
-    right = _people(prediction.logits[0].argmax(-1)) & people_blocks
+    right = most_likely_in(prediction.logits[0], HUMAN_CENTRIC_CLASSES) & people_blocks
     return PeopleCounts(predicted, true, int(people_blocks.sum()), int(right.sum()))
 
 

@@ -419,10 +419,9 @@ def _won_back(runs: Sequence[StudyRun]) -> list[str]:
             continue
         if half.n < MIN_INTERVAL_SEEDS:
             verdict = "too few seeds for an interval"
-        elif half.low > 0:
-            verdict = "at least half, the interval excludes 0"
-        elif half.high < 0:
-            verdict = "less than half, the interval excludes 0"
+        elif half.excludes_zero():
+            least = "at least" if half.mean > 0 else "less than"
+            verdict = f"{least} half, the interval excludes 0"
         else:
             verdict = "whether it is at least half is not resolved"
         out.append(
