@@ -1,7 +1,8 @@
 """`dego eval` throughput: samples per second and peak memory, before vs now, in one run.
 
-Workload: a synthetic Occ3D-nuScenes release (``occ3d_tree.py``: street scenes of 40
-keyframes, 200 x 200 x 16 ground truth in the release layout, SparseOcc-style ``pred``
+Workload: a synthetic Occ3D-nuScenes release (``dego.evaluation.write_benchmark_tree``:
+street scenes of 40 keyframes, 200 x 200 x 16 ground truth in the release layout,
+SparseOcc-style ``pred``
 predictions, an mmdet3d infos file), scored the way ``dego eval --infos`` scores the
 real one: read and validate both files, mIoU under the ``occ3d`` and ``weak`` protocols,
 RayIoU from up to 8 origins per sample (SparseOcc's EgoPoseDataset) x 14,040 rays
@@ -25,6 +26,14 @@ identical (checked).
 
     python benchmarks/bench_eval.py [--scenes 6] [--frames 40] [--before-samples 16]
                                     [--workers 2] [--data DIR]
+
+``--benchmarks``: every benchmark of ``dego eval --benchmark`` side by side instead, each
+in its own process on a fixture tree of ``--frames`` keyframes in its own layout (one
+scene): seconds per sample (after a warm-up run over the same tree), peak RSS, and the
+ratio to Occ3D-nuScenes scored the same way (voxel metrics alone, and with RayIoU where
+the benchmark has rays).
+
+    python benchmarks/bench_eval.py --benchmarks [--frames 8]
 """
 
 from __future__ import annotations
@@ -91,6 +100,60 @@ def _row(args: argparse.Namespace) -> None:
     )
 
 
+def _benchmark_row(args: argparse.Namespace) -> None:
+    """One benchmark row (a child process): warm-up, then the timed run; a JSON line."""
+    import dego
+    from dego.evaluation.trees import write_benchmark_tree
+
+    name, rays = args.row.split(":")[1:]
+    tree = write_benchmark_tree(name, Path(args.data) / name, frames=args.frames)
+    kwargs = {"benchmark": name, "rayiou": rays == "rays", "infos": tree.infos}
+    dego.evaluate(tree.gt, tree.pred, **kwargs)  # warm-up: imports, numba's cache
+    start = time.perf_counter()
+    report = dego.evaluate(tree.gt, tree.pred, **kwargs)
+    seconds = time.perf_counter() - start
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(
+        json.dumps(
+            {"samples": report.samples_scored, "seconds": seconds, "peak_mib": peak_kib / 1024}
+        )
+    )
+
+
+def benchmark_rows(args: argparse.Namespace) -> None:
+    """``--benchmarks``: every benchmark side by side (see the module docstring)."""
+    import torch
+
+    from dego.evaluation.benchmarks import BENCHMARKS
+
+    script = Path(__file__).resolve()
+    rows = [(name, "voxels") for name, b in BENCHMARKS.items() if b.voxel]
+    rows += [(name, "rays") for name, b in BENCHMARKS.items() if b.ray is not None]
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, CPU, {args.frames} samples"
+    )
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="dego-bench-benchmarks-") as scratch:
+        for name, what in rows:
+            command = [sys.executable, str(script), "--row", f"benchmark:{name}:{what}"]
+            command += ["--data", scratch, "--frames", str(args.frames)]
+            done = subprocess.run(command, capture_output=True, text=True, check=False)
+            if done.returncode != 0:
+                raise SystemExit(f"{name} failed:\n{done.stderr}")
+            results[name, what] = json.loads(done.stdout.strip().splitlines()[-1])
+    print("\n| benchmark | scored | grid | s / sample | peak RSS | vs occ3d-nuscenes |")
+    print("|---|---|---|---|---|---|")
+    for (name, what), r in results.items():
+        per = r["seconds"] / r["samples"]
+        base = results[("occ3d-nuscenes", what)]
+        ratio = per / (base["seconds"] / base["samples"])
+        shape = " x ".join(map(str, BENCHMARKS[name].shape))
+        scored = "voxel metrics" if what == "voxels" else "RayIoU (+ mAVE) and voxel metrics"
+        print(
+            f"| {name} | {scored} | {shape} | {per:.3f} | {r['peak_mib']:.0f} MiB | {ratio:.2f}x |"
+        )
+
+
 def _subset_infos(root: Path, count: int) -> None:
     with (root / "nuscenes_infos_val.pkl").open("rb") as file:
         infos = pickle.load(file)  # our own file
@@ -117,20 +180,28 @@ def main() -> None:
     parser.add_argument("--data", type=Path, help="build (or reuse) the data set here")
     parser.add_argument("--row", help=argparse.SUPPRESS)
     parser.add_argument("--limit", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--benchmarks", action="store_true", help="every benchmark side by side")
     args = parser.parse_args()
+    if args.row and args.row.startswith("benchmark:"):
+        _benchmark_row(args)
+        return
     if args.row:
         _row(args)
         return
+    if args.benchmarks:
+        benchmark_rows(args)
+        return
 
     import torch
-    from occ3d_tree import write_tree
+
+    from dego.evaluation.trees import write_benchmark_tree
 
     with tempfile.TemporaryDirectory(prefix="dego-bench-eval-") as scratch:
         data = args.data or Path(scratch)
         total = args.scenes * args.frames
         if not (data / "nuscenes_infos_val.pkl").is_file():
             start = time.perf_counter()
-            write_tree(data, args.scenes, args.frames)
+            write_benchmark_tree("occ3d-nuscenes", data, scenes=args.scenes, frames=args.frames)
             print(f"wrote {total} samples in {time.perf_counter() - start:.0f} s to {data}")
         for count in (1, args.before_samples):
             _subset_infos(data, count)

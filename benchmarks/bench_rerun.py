@@ -2,7 +2,7 @@
 `--rerun` adds to `dego eval` and `dego demo`, measured side by side in one run.
 
 1. Logging (in this process, into a recording streamed to a file): one Occ3D
-   200 x 200 x 16 street frame (``occ3d_tree.py``) in each grid style, whole and inside its
+   200 x 200 x 16 street frame (``dego.evaluation.trees``) in each grid style, whole and inside its
    camera mask; Gaussian sets of 10,000 and 100,000; the six cameras of a synthetic frame
    with their images and pseudo labels. Median milliseconds, bytes written per call, peak
    memory.
@@ -25,10 +25,10 @@ import time
 from pathlib import Path
 
 import torch
-from occ3d_tree import street, write_tree
 
 from dego import GaussianSet, VoxelGrid
 from dego.data import SyntheticScene
+from dego.evaluation.trees import street, write_benchmark_tree
 from dego.viz import rerun as rerun_log
 
 from harness import benchmark_parser, median_seconds, peak_memory_mib
@@ -129,7 +129,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         logging_rows(folder, args.repeats)
-        gt, pred, _ = write_tree(folder / "release", scenes=1, frames=args.samples)
+        tree = write_benchmark_tree("occ3d-nuscenes", folder / "release", frames=args.samples)
+        gt, pred = tree.gt, tree.pred
         rrd = folder / "eval.rrd"
         plain = ["eval", "--gt", str(gt), "--pred", str(pred), "--no-rayiou", "--quiet"]
         command_rows(

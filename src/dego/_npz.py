@@ -64,6 +64,28 @@ def open_regular_file(path: Path, holds: str) -> BinaryIO:
         raise
 
 
+def npy_header(path: Path, holds: str) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype a ``.npy`` file declares, read from its header alone (nothing
+    else is read); a file that is not a ``.npy`` array is a ``ValueError`` naming ``path``
+    and what it should hold, an object array is refused (``allow_pickle=False``)."""
+    with open_regular_file(path, holds) as file:
+        try:
+            version = npy_format.read_magic(file)
+            read = (
+                npy_format.read_array_header_1_0
+                if version == (1, 0)
+                else npy_format.read_array_header_2_0
+            )
+            shape, _, dtype = read(file)
+        except Exception as exc:  # bad magic, garbage header
+            raise ValueError(
+                f"{path}: not a readable .npy array ({exc}); expected {holds}"
+            ) from exc
+    if dtype.hasobject:
+        raise ValueError(f"{path}: holds an object array ({dtype}); refused (allow_pickle=False)")
+    return tuple(shape), dtype
+
+
 def write_npz(path: Path, arrays: Mapping[str, np.ndarray], *, compressed: bool) -> None:
     """Write ``arrays`` to exactly ``path`` through a temporary file in the same directory
     and ``os.replace``, so readers never see a partial file; parents are created."""

@@ -3,7 +3,8 @@
 Each command lives in the package whose work it does (:data:`COMMANDS`): ``dego demo`` in
 :mod:`dego.demo.command`, ``dego study`` in :mod:`dego.demo.study.command`, ``dego train``
 in :mod:`dego.demo.feedforward.command`, ``dego eval`` in :mod:`dego.evaluation.command`
-and ``dego view`` in :mod:`dego.viz.command`. Every command module has the same names:
+``dego data`` in :mod:`dego.evaluation.data_command` and ``dego view`` in
+:mod:`dego.viz.command`. Every command module has the same names:
 ``DESCRIPTION`` and ``EPILOG`` (its ``--help``), ``add_arguments(parser)`` and
 ``run_command(args, parser, created) -> int``. Only the module of the command that runs
 is imported, so ``dego eval`` never loads the demo.
@@ -38,8 +39,9 @@ PROGRAM_DESCRIPTION = (
     "'dego demo' fits static, rigid and decoupled Gaussians (and reference rows) to one clip "
     "and scores them; 'dego study' repeats the fits over seeds and Gaussian budgets; "
     "'dego train' trains a feed-forward network on many clips with and without deformation; "
-    "'dego eval' scores a folder of Occ3D-nuScenes predictions; 'dego view' opens a "
-    "recording of demo or eval (--rerun) in rerun's viewer."
+    "'dego eval' scores a folder of occupancy predictions with the rules of any of six "
+    "benchmarks; 'dego data write-tree' writes a small synthetic tree of any of them; 'dego view' "
+    "opens a recording of demo or eval (--rerun) in rerun's viewer."
 )
 
 
@@ -66,7 +68,11 @@ COMMANDS = {
     ),
     "eval": Command(
         "dego.evaluation.command",
-        "score Occ3D-nuScenes predictions: mIoU, IoU, InsM/ScnM/HCM, RayIoU",
+        "score occupancy predictions on any benchmark (--benchmark): mIoU, IoU, RayIoU",
+    ),
+    "data": Command(
+        "dego.evaluation.data_command",
+        "write a small synthetic tree of any benchmark (dego data write-tree --benchmark NAME OUT)",
     ),
     "view": Command(
         "dego.viz.command",

@@ -24,6 +24,7 @@ from dego._cli_args import (
     parse_device,
 )
 from dego.classes import FREE_LABEL
+from dego.evaluation.benchmarks import DEFAULT_BENCHMARK, MAVE_VARIANTS, benchmark_list
 from dego.evaluation.errors import EvaluationSetupError, EvaluationWorkerError
 from dego.evaluation.run import MISSING_POLICIES, PROTOCOL_CHOICES, evaluate
 
@@ -32,10 +33,25 @@ MAX_WORKERS = 64
 a few hundred MB; on a 2-core machine 2 is the fastest setting)."""
 
 DESCRIPTION = (
-    "Score Occ3D-nuScenes occupancy predictions on CPU: voxel IoU / mIoU (with InsM, ScnM, "
-    "HCM) under the occ3d and weak protocols, and SparseOcc's RayIoU at 1/2/4 m. Every score is "
-    "in percent: tables and --markdown with 2 decimals, --json unrounded."
+    "Score occupancy predictions on CPU with the rules of a benchmark (--benchmark, default "
+    "occ3d-nuscenes; --benchmarks lists them): voxel IoU / mIoU (with InsM, ScnM, HCM) under "
+    "the occ3d and weak protocols, SparseOcc's RayIoU at 1/2/4 m, and each other benchmark's "
+    "official metric. Every score is in percent: tables and --markdown with 2 decimals, --json "
+    "unrounded."
 )
+
+
+class _ListBenchmarks(argparse.Action):
+    """``dego eval --benchmarks``: one line per benchmark, then exit 0."""
+
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__(nargs=0, default=argparse.SUPPRESS, **kwargs)  # type: ignore[arg-type]
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object, **kwargs: object) -> None:
+        print(benchmark_list())
+        parser.exit(0)
+
+
 EPILOG = (
     "Ray origins (RayIoU), in order of preference: --infos, --nuscenes, --origins. "
     "Exit status: 0 all samples scored, 1 some samples failed (scores over the rest), "
@@ -84,8 +100,24 @@ class _NotTheNuScenesVersion(argparse.Action):
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dego eval`` (on an existing (sub)parser)."""
+    parser.add_argument("--benchmarks", action=_ListBenchmarks, help="list the benchmarks and exit")
     parser.add_argument(
-        "--gt", type=Path, required=True, help="Occ3D root holding gts/<scene>/<token>/labels.npz"
+        "--benchmark",
+        default=DEFAULT_BENCHMARK,
+        help=f"whose rules score the predictions ({DEFAULT_BENCHMARK}; see --benchmarks)",
+    )
+    parser.add_argument(
+        "--mave",
+        choices=MAVE_VARIANTS,
+        default="dataset",
+        help="openocc-v2: which official RayIoU/mAVE script (dataset)",
+    )
+    parser.add_argument(
+        "--gt",
+        type=Path,
+        required=True,
+        help="ground-truth root in the benchmark's layout (occ3d-nuscenes: the Occ3D root "
+        "holding gts/<scene>/<token>/labels.npz)",
     )
     parser.add_argument(
         "--pred",
@@ -111,7 +143,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     origins.add_argument("--origins", type=Path, help="folder of <token>.npy (K, 3) origins")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU")
     parser.add_argument(
-        "--protocol", choices=PROTOCOL_CHOICES, default="both", help="voxel protocol(s) (both)"
+        "--protocol",
+        default="both",
+        help=f"voxel protocol(s): {', '.join(PROTOCOL_CHOICES)} for occ3d-nuscenes; a "
+        "benchmark's own protocol name, or both/all (both)",
     )
     parser.add_argument(
         "--classes",
@@ -216,6 +251,8 @@ def _run(args: argparse.Namespace, created: list[Path]) -> int:
             workers=args.workers,
             device=args.device,
             progress=not args.quiet,
+            benchmark=args.benchmark,
+            mave=args.mave,
         )
     except EvaluationSetupError as error:
         if is_rank0:

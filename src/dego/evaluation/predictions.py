@@ -11,12 +11,13 @@ from __future__ import annotations
 import os
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from dego._npz import read_npz
+from dego._npz import npy_header, read_npz
 from dego._policy import check_memory
 from dego._typing import typechecked
 from dego.classes import NUM_CLASSES
@@ -88,17 +89,7 @@ def _check_declared(
 
 
 def _read_npy(path: Path, expected_shape: tuple[int, int, int] | None) -> np.ndarray:
-    with path.open("rb") as file:
-        try:
-            version = np.lib.format.read_magic(file)
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(file)
-            else:
-                shape, _, dtype = np.lib.format.read_array_header_2_0(file)
-        except Exception as exc:  # bad magic, garbage header
-            raise ValueError(f"{path}: not a readable .npy array ({exc})") from exc
-    if dtype.hasobject:
-        raise ValueError(f"{path}: holds an object array ({dtype}); refused (allow_pickle=False)")
+    shape, dtype = npy_header(path, "a prediction array")
     _check_declared(str(path), shape, dtype, expected_shape)
     check_memory(str(path), int(np.prod(shape)) * dtype.itemsize, f"shape {shape}, {dtype}")
     try:
@@ -148,4 +139,132 @@ def load_prediction(
     return torch.from_numpy(np.ascontiguousarray(array).astype(np.uint8, copy=False))
 
 
-__all__ = ["PREDICTION_KEYS", "find_prediction", "load_prediction", "prediction_candidates"]
+# ----------------------------------------------------------------------------------------
+# Predictions of any benchmark
+# ----------------------------------------------------------------------------------------
+
+FLOW_KEY = "flow"
+LOGITS_CHUNK = 4  # channels upsampled at a time: bounds memory on 512 x 512 x 40 grids
+
+
+def _benchmark_keys(path: Path, keys: list[str], layout_key: str | None) -> str:
+    if layout_key is not None and layout_key in keys:  # the GT's own layout (Waymo)
+        return layout_key
+    return _choose_key(path, [k for k in keys if k != FLOW_KEY])
+
+
+def upsample_logits(logits: Tensor, shape: tuple[int, int, int]) -> Tensor:
+    """``(C, x, y, z)`` logits upsampled to ``shape`` with trilinear interpolation
+    (``align_corners=False``) and reduced to labels by argmax (first maximum on ties), as
+    OpenOccupancy's ``evaluation_semantic`` does; a few channels at a time, keeping the
+    running maximum, so memory stays near two float grids whatever C is."""
+    best = torch.full(shape, -torch.inf, dtype=logits.dtype)
+    labels = torch.zeros(shape, dtype=torch.int64)
+    for first in range(0, logits.shape[0], LOGITS_CHUNK):
+        part = torch.nn.functional.interpolate(
+            logits[None, first : first + LOGITS_CHUNK],
+            size=shape,
+            mode="trilinear",
+            align_corners=False,
+        )[0]
+        for offset, channel in enumerate(part):
+            better = channel > best
+            best = torch.where(better, channel, best)
+            labels = torch.where(better, first + offset, labels)
+    return labels
+
+
+@typechecked
+def read_prediction(path: PathLike, benchmark: Any) -> tuple[Tensor, Tensor | None]:
+    """One prediction of ``benchmark`` (:class:`~dego.evaluation.benchmarks.Benchmark`):
+    ``(X, Y, Z)`` int64 labels in its label space (a stored free remapped) and the
+    ``(X, Y, Z, 2)`` float32 flow when the file has one (array ``flow``).
+
+    Accepted: an ``.npz`` holding one of :data:`PREDICTION_KEYS` (or the GT layout's own
+    array) and optionally ``flow``; an ``.npy`` label grid; for benchmarks with sparse
+    ground truth, an ``.npy`` of rows in the GT's layout; for benchmarks that upsample
+    (OpenOccupancy), floating ``(C, x, y, z)`` logits.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a wrong shape (naming the benchmark and its grid), labels outside the
+            benchmark's range (e.g. Occ3D ids scored as OpenOcc v2), a corrupt file.
+    """
+    from dego.evaluation.layouts import _labels, densify_rows, layout_of
+    from dego.evaluation.layouts import _read_npy as read_any_npy
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such prediction file")
+    layout = layout_of(benchmark)
+    flow = None
+    if path.suffix == ".npy":
+        shape, dtype = npy_header(path, f"a {benchmark.name} prediction")
+        sparse = len(shape) == 2 and hasattr(layout, "order")
+        logits = benchmark.logits and dtype.kind == "f" and len(shape) == 4
+        if not sparse and not logits:
+            _check_shape(str(path), tuple(shape), benchmark)
+        array = read_any_npy(path, f"a {benchmark.name} prediction")
+        where = str(path)
+        if sparse:
+            return densify_rows(where, array, benchmark, layout.order, layout.vote), None
+        if logits:
+            if array.shape[0] != benchmark.num_classes:
+                raise ValueError(
+                    f"{where}: logits with {array.shape[0]} channels; {benchmark.name} has "
+                    f"{benchmark.num_classes} classes"
+                )
+            return upsample_logits(torch.from_numpy(array), benchmark.shape), None
+    else:
+        keys = _npz_keys(path)
+        layout_key = getattr(layout, "keys", (None,))[0]
+        key = _benchmark_keys(path, keys, layout_key)
+
+        def check_header(name: str, got: tuple[int, ...], dtype: np.dtype) -> None:
+            want = benchmark.shape if name == key else (*benchmark.shape, 2)
+            if name == key and dtype.kind not in "iu":
+                raise ValueError(f"array {name!r}: expected integer labels, got dtype {dtype}")
+            if tuple(got) != tuple(want):
+                raise ValueError(_shape_text(f"array {name!r}", tuple(got), benchmark, want))
+
+        wanted = [key, FLOW_KEY] if FLOW_KEY in keys else [key]
+        arrays = read_npz(path, wanted, holds="a prediction archive", check_header=check_header)
+        array, where = arrays[key], f"{path}: array {key!r}"
+        if FLOW_KEY in arrays:
+            if arrays[FLOW_KEY].dtype.kind != "f":
+                raise ValueError(f"{path}: array 'flow' must be floating")
+            flow = torch.from_numpy(arrays[FLOW_KEY].astype(np.float32))
+    if array.dtype.kind not in "iu":
+        raise ValueError(f"{where}: expected integer labels, got dtype {array.dtype}")
+    try:
+        labels = _labels(where, array, benchmark, allow_ignore=False)
+    except ValueError as exc:
+        if benchmark.name == "openocc-v2" and array.size and int(array.max()) == 17:
+            raise ValueError(
+                f"{exc}; Occ3D-nuScenes labels (17 = free) convert with "
+                "dego.evaluation.occ3d_to_openocc"
+            ) from None
+        raise
+    return labels, flow
+
+
+def _shape_text(where: str, got: tuple[int, ...], benchmark: Any, want: tuple[int, ...]) -> str:
+    return (
+        f"{where}: shape {got}; the {benchmark.name} grid is {tuple(want)}, so a prediction "
+        f"must be {tuple(want)} ({benchmark.prediction})"
+    )
+
+
+def _check_shape(where: str, shape: tuple[int, ...], benchmark: Any) -> None:
+    if tuple(shape) != tuple(benchmark.shape):
+        raise ValueError(_shape_text(where, tuple(shape), benchmark, benchmark.shape))
+
+
+__all__ = [
+    "PREDICTION_KEYS",
+    "find_prediction",
+    "load_prediction",
+    "prediction_candidates",
+    "read_prediction",
+    "upsample_logits",
+]

@@ -56,6 +56,12 @@ class EvaluationReport:
         version: the dego version.
         traversal: how the rays were cast: ``"numba"`` (the compiled CPU kernel) or
             ``"torch"``, with identical hits.
+        benchmark: the benchmark scored; ``rules``: its rules, one line each (the
+            header of every report: grid, frame, labels, masks, class sets, averaging).
+        rayiou_sets: RayIoU over each class set the benchmark names (``rayiou`` is the
+            first), e.g. Occ3D-nuScenes' 17 classes beside the 15 of the weak set.
+        flow: OpenOcc v2's flow scores: ``variant``, ``ave`` (per class, m/s), ``mave``
+            and ``occ_score`` (fractions), or ``None``.
     """
 
     def __post_init__(self) -> None:
@@ -82,6 +88,10 @@ class EvaluationReport:
     seconds: float
     version: str
     traversal: str = "torch"
+    benchmark: str = "occ3d-nuscenes"
+    rules: tuple[str, ...] = ()
+    rayiou_sets: Mapping[str, RayIoUReport] = dataclasses.field(default_factory=dict)
+    flow: Mapping[str, Any] | None = None
 
     @property
     def complete(self) -> bool:
@@ -104,6 +114,8 @@ class EvaluationReport:
         out: dict[str, Any] = {
             "dego_version": self.version,
             "units": UNIT,
+            "benchmark": self.benchmark,
+            "rules": list(self.rules),
             "complete": self.complete,
             "gt": self.gt,
             "pred": self.pred,
@@ -132,6 +144,14 @@ class EvaluationReport:
         for name, report in self.protocols.items():
             out[name] = _occupancy_dict(report)
         out["rayiou"] = None if self.rayiou is None else _rayiou_dict(self.rayiou)
+        out["rayiou_sets"] = {name: _rayiou_dict(r) for name, r in self.rayiou_sets.items()}
+        if self.flow is not None:
+            out["flow"] = {
+                "variant": self.flow["variant"],
+                "ave_m_per_s": {k: _finite(v) for k, v in self.flow["ave"].items()},
+                "mave_m_per_s": _finite(self.flow["mave"]),
+                "occ_score": percent_or_none(self.flow["occ_score"]),
+            }
         out["counts"] = {
             metric: {name: count.tolist() for name, count in counts.items()}
             for metric, counts in self.counts.items()
@@ -144,7 +164,8 @@ class EvaluationReport:
 
     # -- text -----------------------------------------------------------------------------
     def _summary_lines(self) -> list[str]:
-        lines = [
+        lines = [*self.rules]
+        lines += [
             f"dego {self.version} eval: {self.samples_scored} of {self.samples_total} samples "
             f"scored ({self.world_size} process(es), {self.seconds:.1f} s)",
             f"gt: {self.gt}",
@@ -192,11 +213,15 @@ class EvaluationReport:
         for name, report in self.protocols.items():
             lines += ["", f"== voxel IoU, {name} protocol (percent) ==", report.table()]
         if self.rayiou is not None:
-            lines += ["", f"== RayIoU (percent), origins {self.origin_source} =="]
-            lines += [self.rayiou.table()]
+            for i, (name, ray) in enumerate((self.rayiou_sets or {"": self.rayiou}).items()):
+                title = f"RayIoU (percent){', ' + name if i else ''}"
+                lines += ["", f"== {title}, origins {self.origin_source} =="]
+                lines += [ray.table()]
+        if self.flow is not None:
+            lines += ["", *self._flow_lines()]
         elif self.origin_source is not None:
             lines += ["", "RayIoU: no ray was scored"]
-        if not self.protocols:
+        if not self.protocols and self.rayiou is None:
             lines += ["", "no sample was scored"]
         if self.failed:
             lines += ["", f"failed samples ({len(self.failed)}):"]
@@ -230,12 +255,12 @@ class EvaluationReport:
                 f"| {report.class_names[c]} | {percent_text(float(report.per_class[c]))} |"
                 for c in report.evaluated_classes
             ]
-        if self.rayiou is not None:
-            ray = self.rayiou
+        ray_sets = self.rayiou_sets or ({"": self.rayiou} if self.rayiou else {})
+        for i, (name, ray) in enumerate(ray_sets.items()):
             heads = [f"@{t:g} m" for t in ray.thresholds]
             lines += [
                 "",
-                f"## RayIoU (percent), origins {self.origin_source}",
+                f"## RayIoU (percent){', ' + name if i else ''}, origins {self.origin_source}",
                 "",
                 f"RayIoU **{percent_text(ray.rayiou)}** (mean over {len(ray.class_ids)} classes)",
                 "",
@@ -246,6 +271,8 @@ class EvaluationReport:
                 cells = [percent_text(float(ray.per_class[i, c])) for i in range(len(heads))]
                 lines.append(f"| {ray.class_names[c]} | " + " | ".join(cells) + " |")
             lines.append("| **mean** | " + " | ".join(percent_text(v) for v in ray.at) + " |")
+        if self.flow is not None:
+            lines += ["", "## Flow (OpenOcc v2)", "", *(f"- {line}" for line in self._flow_lines())]
         if self.failed:
             lines += ["", f"## Failed samples ({len(self.failed)})", ""]
             lines += [f"- `{f.token}` ({f.file}): {f.message}" for f in self.failed]
@@ -254,13 +281,31 @@ class EvaluationReport:
             lines += [f"- `{t}`" for t in self.missing_tokens]
         return "\n".join(lines) + "\n"
 
+    def _flow_lines(self) -> list[str]:
+        assert self.flow is not None
+        flow = self.flow
+        ave = ", ".join(f"{k} {_num(v)}" for k, v in flow["ave"].items())
+        return [
+            f"mAVE ({flow['variant']} script): {_num(flow['mave'])} m/s; AVE per class: {ave}",
+            f"OccScore: {percent_text(flow['occ_score'])} (percent)",
+        ]
+
     def __str__(self) -> str:
         return self.tables()
+
+
+def _num(value: float) -> str:
+    return "-" if value != value else f"{value:.4f}"
+
+
+def _finite(value: float) -> float | None:
+    return None if value != value else float(value)
 
 
 def _occupancy_dict(report: OccupancyReport) -> dict[str, Any]:
     return {
         "protocol": report.protocol,
+        "averaging": report.averaging,
         "miou": percent_or_none(report.miou),
         "iou": percent_or_none(report.iou),
         **{name: percent_or_none(value) for name, value in report.group_means.items()},

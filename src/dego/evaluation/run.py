@@ -18,13 +18,11 @@ Counts are int64, so the numbers do not depend on how the samples were shared.
 
 from __future__ import annotations
 
-import ast
+import collections
 import dataclasses
-import inspect
 import os
 import shutil
 import signal
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -39,14 +37,15 @@ import torch.multiprocessing as torch_mp
 from dego._checks import check_int
 from dego._typing import typechecked
 from dego._version import __version__
-from dego.classes import FREE_LABEL
 from dego.data.occ3d import LABELS_FILENAME, load_occ3d_labels
+from dego.evaluation.benchmarks import DEFAULT_BENCHMARK, MAVE_VARIANTS, Benchmark, get_benchmark
 from dego.evaluation.errors import (
     EvaluationSetupError,
     EvaluationWorkerError,
     SampleFailure,
     list_tokens,
 )
+from dego.evaluation.layouts import GroundTruth, NpzTree, check_unique, layout_of
 from dego.evaluation.origins import (
     NO_ORIGINS_MESSAGE,
     DirectoryOrigins,
@@ -56,10 +55,30 @@ from dego.evaluation.origins import (
     load_keyframes,
     open_origins,
 )
-from dego.evaluation.predictions import find_prediction, load_prediction, prediction_candidates
+from dego.evaluation.predictions import (
+    find_prediction,
+    load_prediction,
+    prediction_candidates,
+    read_prediction,
+)
+from dego.evaluation.processes import (
+    _check_plans_agree,
+    _cpus,
+    _exit_message,
+    _stop,
+    _unguarded_main_line,
+)
 from dego.evaluation.progress import Progress
 from dego.evaluation.report import EvaluationReport
-from dego.metrics.counts import gathered_if_different
+from dego.evaluation.scoring import (
+    cast_with_flow,
+    mave,
+    occ_score,
+    ray_flow_counts,
+    ray_reports,
+    voxel_counts,
+    voxel_report,
+)
 from dego.metrics.occupancy import OccupancyMetrics
 from dego.metrics.rayiou import RayIoU
 from dego.metrics.report import OccupancyReport
@@ -79,6 +98,7 @@ class Sample:
     scene: str
     token: str
     prediction: str | None
+    gt_file: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +118,12 @@ class Plan:
     source: OriginSource | None
     ignored_sources: tuple[str, ...]
     device: str
+    benchmark: str = DEFAULT_BENCHMARK
+    mave: str = "dataset"
+
+    @property
+    def spec(self) -> Benchmark:
+        return get_benchmark(self.benchmark)
 
 
 # ----------------------------------------------------------------------------------------
@@ -105,23 +131,37 @@ class Plan:
 # ----------------------------------------------------------------------------------------
 
 
-def _protocols(protocol: str) -> tuple[str, ...]:
-    if protocol not in PROTOCOL_CHOICES:
+def _protocols(protocol: str, benchmark: Benchmark) -> tuple[str, ...]:
+    names = tuple(p.name for p in benchmark.voxel)
+    if protocol in ("both", "all"):
+        return names
+    if protocol not in names:
+        if benchmark.name == DEFAULT_BENCHMARK:
+            raise EvaluationSetupError(
+                f"protocol: expected one of {list(PROTOCOL_CHOICES)}, got {protocol!r}"
+            )
         raise EvaluationSetupError(
-            f"protocol: expected one of {list(PROTOCOL_CHOICES)}, got {protocol!r}"
+            f"protocol: {benchmark.name} has no protocol {protocol!r}; expected one of "
+            f"{[*names, 'all']}"
         )
-    return PROTOCOLS if protocol == "both" else (protocol,)
+    return (protocol,)
 
 
-def _classes(classes: Sequence[int] | None) -> tuple[int, ...] | None:
+def _classes(classes: Sequence[int] | None, benchmark: Benchmark) -> tuple[int, ...] | None:
     if classes is None:
         return None
     out: list[int] = []
+    free = benchmark.free_label
     for c in classes:
-        if isinstance(c, bool) or not isinstance(c, int | np.integer) or not 0 <= c < FREE_LABEL:
+        if (
+            isinstance(c, bool)
+            or not isinstance(c, int | np.integer)
+            or not 0 <= c < benchmark.num_classes
+            or c == free
+        ):
             raise EvaluationSetupError(
-                f"classes: expected class ids in 0..{FREE_LABEL - 1} (17 = free is never "
-                f"averaged), got {c!r}"
+                f"classes: expected {benchmark.name} class ids in 0..{benchmark.num_classes - 1} "
+                f"but {free} ({free} = free is never averaged), got {c!r}"
             )
         if int(c) not in out:
             out.append(int(c))
@@ -137,52 +177,14 @@ def _ground_truth(root: Path) -> tuple[Path, list[tuple[str, str]]]:
     if not root.is_dir():
         raise EvaluationSetupError(f"--gt: {root} is not an existing directory")
     labels_root = root / "gts" if (root / "gts").is_dir() else root
-    samples = sorted(_walk_ground_truth(labels_root))
+    entries = check_unique(NpzTree().find(labels_root), labels_root)
+    samples = sorted((e.scene, e.token) for e in entries)
     if not samples:
         raise EvaluationSetupError(
             f"--gt: no ground truth under {root}: expected gts/<scene>/<token>/"
             f"{LABELS_FILENAME} (the Occ3D release) or <scene>/<token>/{LABELS_FILENAME}"
         )
     return labels_root, samples
-
-
-def _folders(folder: Path) -> list[Path]:
-    """The sub-folders of ``folder`` (symlinks to folders included); a folder that cannot
-    be listed is a setup error naming it, never a silent omission (as ``glob`` makes it)."""
-    try:
-        with os.scandir(folder) as entries:
-            names = [entry.name for entry in entries]
-    except OSError as exc:
-        raise EvaluationSetupError(
-            f"--gt: {folder}: cannot be read ({exc.strerror or exc}); fix its permissions or "
-            "remove it from the tree"
-        ) from None
-    return [folder / name for name in names if (folder / name).is_dir()]
-
-
-def _walk_ground_truth(labels_root: Path) -> list[tuple[str, str]]:
-    """``(scene, token)`` of every ``<scene>/<token>/labels.npz``; a ``labels.npz`` that is
-    a dangling link or not a regular file, or a folder that cannot be read, is a setup
-    error (a token folder without ``labels.npz`` is not a sample)."""
-    samples = []
-    for scene in _folders(labels_root):
-        for token in _folders(scene):
-            labels = token / LABELS_FILENAME
-            try:
-                regular = labels.is_file()
-                present = regular or os.path.lexists(labels)
-            except OSError as exc:
-                raise EvaluationSetupError(
-                    f"--gt: {labels}: cannot be read ({exc.strerror or exc})"
-                ) from None
-            if present and not regular:
-                what = "a dangling link" if not labels.exists() else "not a regular file"
-                raise EvaluationSetupError(
-                    f"--gt: {labels}: {what}; expected the sample's labels archive"
-                )
-            if regular:
-                samples.append((scene.name, token.name))
-    return samples
 
 
 def prepare(
@@ -198,14 +200,25 @@ def prepare(
     origins: PathLike | None = None,
     missing: str = "error",
     device: str = "cpu",
+    benchmark: str = DEFAULT_BENCHMARK,
+    mave: str = "dataset",
 ) -> tuple[Plan, OriginsFn | None]:
     """Select the samples and check predictions and origins for all of them up front.
 
     Returns the plan and the origins of every sample (``None`` without RayIoU), opened
-    once here: this process scores with them, spawned workers open their own.
+    once here: this process scores with them, spawned workers open their own. The first
+    sample's ground truth and prediction are read here too, so that a tree or a
+    prediction of another benchmark is a setup error, not a failure of every sample.
     Raises :class:`EvaluationSetupError` naming the option, file or tokens at fault.
     """
-    protocols, class_ids = _protocols(protocol), _classes(classes)
+    try:
+        spec = get_benchmark(benchmark)
+    except ValueError as exc:
+        raise EvaluationSetupError(str(exc)) from None
+    if mave not in MAVE_VARIANTS:
+        raise EvaluationSetupError(f"mave: expected one of {list(MAVE_VARIANTS)}, got {mave!r}")
+    protocols, class_ids = _protocols(protocol, spec), _classes(classes, spec)
+    rayiou = rayiou and spec.ray is not None
     if missing not in MISSING_POLICIES:
         raise EvaluationSetupError(
             f"missing: expected one of {list(MISSING_POLICIES)}, got {missing!r}"
@@ -216,22 +229,35 @@ def prepare(
     pred_root = Path(pred)
     if not pred_root.is_dir():
         raise EvaluationSetupError(f"--pred: {pred_root} is not a directory")
-    labels_root, tree_samples = _ground_truth(Path(gt))
+    layout = layout_of(spec)
+    if spec.layout == "occ3d":
+        labels_root, tree_samples = _ground_truth(Path(gt))
+        files = {t: str(labels_root / s / t / LABELS_FILENAME) for s, t in tree_samples}
+    else:
+        labels_root, entries = layout.samples(Path(gt), spec)
+        tree_samples = [(e.scene, e.token) for e in entries]
+        files = {e.token: str(e.path) for e in entries}
     scene_of = {token: scene for scene, token in tree_samples}
 
     keyframes = None
-    if source is not None and source.kind != "origins" and (rayiou or source.kind == "infos"):
+    use_infos = spec.nuscenes and source is not None and source.kind == "infos"
+    if source is not None and source.kind != "origins" and (rayiou or use_infos):
         keyframes = load_keyframes(source)
-    if source is not None and source.kind == "infos" and keyframes is not None:
+    if use_infos and keyframes is not None and source is not None:
         tokens = [str(k.token) for k in keyframes]  # SparseOcc iterates the infos
         no_gt = [t for t in tokens if t not in scene_of]
         if no_gt:
             raise EvaluationSetupError(
                 f"--infos {source.path}: {len(no_gt)} sample(s) have no ground truth under "
-                f"{labels_root} (expected <scene>/<token>/{LABELS_FILENAME}): "
-                f"{list_tokens(no_gt)}"
+                f"{labels_root} (expected {layout.pattern}): {list_tokens(no_gt)}"
             )
         pairs = [(scene_of[t], t) for t in tokens]
+        twice = sorted(t for t, n in collections.Counter(tokens).items() if n > 1)
+        if twice:
+            raise EvaluationSetupError(
+                f"--infos {source.path}: token(s) {list_tokens(twice)} appear more than once; "
+                "each sample must be scored once"
+            )
     else:
         pairs = list(tree_samples)
     if not pairs:
@@ -241,6 +267,9 @@ def prepare(
     for scene, token in pairs:
         try:
             path = find_prediction(pred_root, scene, token)
+            if path is None and spec.layout != "occ3d":
+                own = pred_root / layout.relative(scene, token)
+                path = own if own.is_file() else None
         except OSError as exc:  # a folder on the way that cannot be read
             raise EvaluationSetupError(
                 f"--pred: {exc.filename or pred_root}: cannot be read ({exc.strerror or exc})"
@@ -249,7 +278,7 @@ def prepare(
             missing_tokens.append(token)
             if missing == "skip":
                 continue
-        samples.append(Sample(scene, token, None if path is None else str(path)))
+        samples.append(Sample(scene, token, None if path is None else str(path), files[token]))
     if missing_tokens and missing == "error":
         looked = " or ".join(str(p) for p in prediction_candidates(pred_root, "<scene>", "<token>"))
         raise EvaluationSetupError(
@@ -261,6 +290,8 @@ def prepare(
         raise EvaluationSetupError(
             f"--pred: none of the {len(pairs)} samples has a prediction in {pred_root}"
         )
+    if spec.name != DEFAULT_BENCHMARK:
+        _check_first(spec, samples[0])
     plan = Plan(
         gt=str(labels_root),
         pred=str(pred_root),
@@ -275,6 +306,8 @@ def prepare(
         source=source if rayiou else None,
         ignored_sources=ignored if rayiou else (),
         device=device,
+        benchmark=spec.name,
+        mave=mave,
     )
     origins_fn = None
     # every origin exists (files) or every token is a keyframe (poses); source is not None
@@ -283,37 +316,92 @@ def prepare(
     return plan, origins_fn
 
 
+def _check_first(spec: Benchmark, sample: Sample) -> None:
+    """Read the first sample's ground truth and prediction: a file of another benchmark
+    is a setup error naming the file and the benchmark."""
+    for path, read in (
+        (sample.gt_file, lambda p: layout_of(spec).read(Path(p), spec)),
+        (sample.prediction, lambda p: read_prediction(p, spec)),
+    ):
+        if path is None:
+            continue
+        try:
+            read(path)
+        except (OSError, ValueError) as exc:
+            message = str(exc) if str(path) in str(exc) else f"{path}: {exc}"
+            raise EvaluationSetupError(f"--benchmark {spec.name}: {message}") from None
+
+
 # ----------------------------------------------------------------------------------------
 # Scoring: the per-sample loop and the counts
 # ----------------------------------------------------------------------------------------
 
 
 class Tally:
-    """The metrics of one process plus the sample / ray counters and the failures."""
+    """The metrics of one process plus the sample / ray counters, the failures and (for
+    benchmarks with flow) one mAVE row per sample."""
 
     def __init__(self, plan: Plan) -> None:
         self.plan = plan
+        spec = plan.spec
         device = torch.device(plan.device)
         self.metrics: dict[str, OccupancyMetrics | RayIoU] = {
-            name: OccupancyMetrics(name, device=device) for name in plan.protocols
+            name: OccupancyMetrics(
+                "occ3d",
+                num_classes=spec.num_classes,
+                free_label=spec.free_label,
+                ignore_label=spec.ignore_label,
+                groups={},
+                device=device,
+            )
+            for name in plan.protocols
         }
         if plan.rayiou:
-            self.metrics["rayiou"] = RayIoU(class_ids=plan.classes, device=device)
+            assert spec.ray is not None
+            self.metrics["rayiou"] = RayIoU(
+                thresholds=spec.ray.thresholds,
+                num_classes=spec.num_classes,
+                free_label=spec.free_label,
+                class_ids=plan.classes or next(iter(spec.ray.class_sets.values())),
+                device=device,
+            )
         self.scored = self.origins = self.rays_cast = 0
         self.failed: list[SampleFailure] = []
+        self.flow_rows: list[tuple[int, Any, Any]] = []
+        self._order = {s.token: i for i, s in enumerate(plan.samples)}
+
+    def _read_gt(self, sample: Sample, device: torch.device) -> GroundTruth:
+        spec = self.plan.spec
+        if spec.name == DEFAULT_BENCHMARK:
+            labels = load_occ3d_labels(sample.gt_file).to(device)
+            masks = {"mask_camera": labels.mask_camera, "mask_lidar": labels.mask_lidar}
+            return GroundTruth(labels.semantics, masks)
+        gt = layout_of(spec).read(Path(sample.gt_file), spec)
+        masks = {k: v.to(device) for k, v in gt.masks.items()}
+        return GroundTruth(gt.semantics.to(device), masks, gt.flow)
+
+    def _read_pred(
+        self, sample: Sample, gt: GroundTruth, device: torch.device
+    ) -> tuple[torch.Tensor, Any]:
+        spec = self.plan.spec
+        if sample.prediction is None:
+            return torch.full(gt.semantics.shape, spec.free_label, device=device), None
+        if spec.name == DEFAULT_BENCHMARK:
+            pred = load_prediction(sample.prediction, expected_shape=gt.semantics.shape)
+            return pred.to(device), None
+        pred, flow = read_prediction(sample.prediction, spec)
+        return pred.to(device), flow
 
     def score(self, sample: Sample, origins_fn: OriginsFn | None) -> None:
         """Read, check and count one sample; a failure is recorded, not raised."""
         device = torch.device(self.plan.device)
-        gt_path = Path(self.plan.gt) / sample.scene / sample.token / LABELS_FILENAME
-        where = str(gt_path)
+        spec = self.plan.spec
+        where = sample.gt_file
+        flow_row = None
         try:
-            labels = load_occ3d_labels(gt_path).to(device)
-            if sample.prediction is None:
-                pred = torch.full(labels.shape, FREE_LABEL, dtype=torch.uint8, device=device)
-            else:
-                where = sample.prediction
-                pred = load_prediction(sample.prediction, expected_shape=labels.shape).to(device)
+            gt = self._read_gt(sample, device)
+            where = sample.prediction or where
+            pred, pred_flow = self._read_pred(sample, gt, device)
             counts: dict[str, tuple[torch.Tensor, ...]] = {}
             k = 0
             for name, metric in self.metrics.items():
@@ -326,11 +414,15 @@ class Tally:
                     )
                     origins = origins_fn(sample.token)
                     k = int(origins.shape[0])
-                    counts[name] = metric._spec.counts(
-                        pred, labels.semantics, origins, rays=metric.rays
-                    )
+                    if spec.ray is not None and spec.ray.flow_classes:
+                        counts[name], flow_row = self._flow_counts(gt, pred, pred_flow, origins)
+                    else:
+                        counts[name] = metric._spec.counts(
+                            pred, gt.semantics, origins, rays=metric.rays
+                        )
                 else:
-                    counts[name] = metric._spec.counts(pred, labels.semantics, labels.mask_camera)
+                    protocol = spec.protocol(name)
+                    counts[name] = voxel_counts(spec, protocol, pred, gt)
         except (OSError, ValueError, TypeError, KeyError) as exc:
             message = str(exc) if where in str(exc) else f"{where}: {exc}"
             self.failed.append(SampleFailure(sample.token, where, message))
@@ -339,10 +431,35 @@ class Tally:
             for count_name, count in zip(metric.COUNTS, counts[name], strict=True):
                 getattr(metric, count_name).add_(count.to(getattr(metric, count_name).device))
             metric._changed()
+        if flow_row is not None:
+            self.flow_rows.append((self._order[sample.token], *flow_row))
         self.scored += 1
         if "rayiou" in self.metrics:
             self.origins += k
             self.rays_cast += k * int(cast(RayIoU, self.metrics["rayiou"]).rays.shape[0])
+
+    def _flow_counts(
+        self, gt: GroundTruth, pred: torch.Tensor, pred_flow: Any, origins: torch.Tensor
+    ) -> tuple[tuple[torch.Tensor, ...], tuple[Any, Any]]:
+        spec = self.plan.spec
+        if gt.flow is None:
+            raise ValueError("the ground truth has no flow")
+        if pred_flow is None:  # no predicted flow: zero, as OccNet's ray_casting.py sets it
+            pred_flow = torch.zeros_like(gt.flow)
+        rays = cast(RayIoU, self.metrics["rayiou"]).rays
+        missed = "scored" if self.plan.mave == "server" else "none"
+        out = cast_with_flow(
+            spec,
+            pred.cpu(),
+            gt.semantics.cpu(),
+            pred_flow,
+            gt.flow,
+            origins.cpu(),
+            rays.cpu(),
+            missed=missed,
+        )
+        counts, sums, numbers = ray_flow_counts(spec, out, self.plan.mave)
+        return counts, (sums, numbers)
 
     def sync(self) -> None:
         """All-reduce the counts, gather the failures (a no-op outside torch.distributed)."""
@@ -356,13 +473,14 @@ class Tally:
         dist.all_reduce(totals, op=dist.ReduceOp.SUM)
         self.scored, self.origins, self.rays_cast = (int(v) for v in totals)
         gathered: list[Any] = [None] * dist.get_world_size()
-        dist.all_gather_object(gathered, self.failed)
-        order = {s.token: i for i, s in enumerate(self.plan.samples)}
-        failed = [f for part in gathered for f in part]
+        dist.all_gather_object(gathered, (self.failed, self.flow_rows))
+        order = self._order
+        failed = [f for part in gathered for f in part[0]]
         self.failed = sorted(failed, key=lambda f: order.get(f.token, len(order)))
+        self.flow_rows = sorted(row for part in gathered for row in part[1])
 
     def state(self) -> dict[str, Any]:
-        """The (synced) totals as plain data: numpy counts, ints, failures."""
+        """The (synced) totals as plain data: numpy counts, ints, failures, mAVE rows."""
         return {
             "counts": {
                 name: {
@@ -374,6 +492,7 @@ class Tally:
             "origins": self.origins,
             "rays_cast": self.rays_cast,
             "failed": list(self.failed),
+            "flow_rows": [(i, np.asarray(a), np.asarray(b)) for i, a, b in sorted(self.flow_rows)],
         }
 
 
@@ -402,35 +521,40 @@ def build_report(
     plan: Plan, state: Mapping[str, Any], world_size: int, seconds: float
 ) -> EvaluationReport:
     """The :class:`EvaluationReport` of pooled totals (:meth:`Tally.state`)."""
+    spec = plan.spec
     counts = {
         metric: {name: torch.as_tensor(np.asarray(c)) for name, c in parts.items()}
         for metric, parts in state["counts"].items()
     }
     protocols: dict[str, OccupancyReport] = {}
-    ray_report = None
+    ray_sets: dict[str, Any] = {}
     rays_scored = 0
-    if state["scored"] > 0:
+    ave, mave_value, score = None, None, None
+    scored = int(state["scored"])
+    if scored > 0:
         for name in plan.protocols:
-            spec = OccupancyMetrics(name)._spec
-            report = spec.report(counts[name]["confusion"], counts[name]["geometric"])
-            if plan.classes is not None:
-                report = OccupancyReport.from_per_class(
-                    report.per_class,
-                    evaluated_classes=plan.classes,
-                    groups=report.groups,
-                    class_names=report.class_names,
-                    iou=report.iou,
-                    protocol=report.protocol,
-                )
-            protocols[name] = report
+            if int(counts[name]["confusion"].sum()) == 0:
+                continue
+            protocols[name] = voxel_report(
+                spec,
+                spec.protocol(name),
+                counts[name]["confusion"],
+                counts[name]["geometric"],
+                scored,
+                plan.classes,
+            )
         if plan.rayiou:
             ray = counts["rayiou"]
             rays_scored = int(ray["gt_count"].sum())
             if rays_scored > 0:
-                ray_spec = RayIoU(class_ids=plan.classes)._spec
-                ray_report = ray_spec.report(
-                    ray["gt_count"], ray["pred_count"], ray["true_positives"]
+                ray_sets = ray_reports(
+                    spec, ray["gt_count"], ray["pred_count"], ray["true_positives"], plan.classes
                 )
+                if spec.ray is not None and spec.ray.flow_classes:
+                    rows = [(a, b) for _, a, b in state.get("flow_rows", [])]
+                    ave, mave_value = mave(spec, rows)
+                    score = occ_score(next(iter(ray_sets.values())).rayiou, mave_value)
+    ray_report = next(iter(ray_sets.values()), None)
     return EvaluationReport(
         protocols=protocols,
         rayiou=ray_report,
@@ -441,7 +565,7 @@ def build_report(
         origin_source=None if plan.source is None else plan.source.description,
         ignored_sources=plan.ignored_sources,
         samples_total=plan.samples_total,
-        samples_scored=int(state["scored"]),
+        samples_scored=scored,
         origins_total=int(state["origins"]),
         rays_per_origin=_rays_per_origin(),
         rays_cast=int(state["rays_cast"]),
@@ -453,6 +577,20 @@ def build_report(
         seconds=seconds,
         version=__version__,
         traversal=cpu_kernel() if torch.device(plan.device).type == "cpu" else "torch",
+        benchmark=spec.name,
+        rules=tuple(spec.rules()),
+        rayiou_sets=ray_sets,
+        flow=None
+        if ave is None
+        else {
+            "variant": plan.mave,
+            "ave": {
+                spec.class_names[c]: float(v)
+                for c, v in zip(spec.ray.flow_classes, ave, strict=True)  # type: ignore[union-attr]
+            },
+            "mave": mave_value,
+            "occ_score": score,
+        },
     )
 
 
@@ -463,13 +601,6 @@ def _rays_per_origin() -> int:
 # ----------------------------------------------------------------------------------------
 # Running: one process, spawned workers, torchrun
 # ----------------------------------------------------------------------------------------
-
-
-def _cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def launched_by_torchrun() -> bool:
@@ -495,72 +626,6 @@ def _worker(
             events.put(("result", tally.state()))
     finally:
         dist.destroy_process_group()
-
-
-def _stop(processes: Sequence[Any]) -> None:
-    """Terminate the workers still running and wait for them (before their store goes)."""
-    for process in processes:
-        if process.is_alive():
-            process.terminate()
-    for process in processes:
-        process.join(5)
-        if process.is_alive():
-            process.kill()
-            process.join()
-
-
-def _exit_message(error: Any) -> str:
-    """One line for a worker that died: which, how, and what to try."""
-    how = (
-        f"was killed by {error.signal_name}"
-        if error.signal_name
-        else f"exited with status {error.exit_code}"
-    )
-    return (
-        f"evaluation worker {error.error_index} (pid {error.error_pid}) {how}; no report was "
-        "made. If the machine ran out of memory (the kernel's OOM killer sends SIGKILL), run "
-        "again with fewer --workers"
-    )
-
-
-def _unguarded_main_line() -> tuple[str, int] | None:
-    """``(file, line)`` of the running top-level statement of the ``__main__`` script when
-    spawned processes would run it again (it is not under ``if __name__ == "__main__":``),
-    else ``None``. Mirrors ``multiprocessing``'s spawn: a package's ``__main__`` (``python
-    -m pkg``), an interactive session or a notebook is not re-run."""
-    main = sys.modules.get("__main__")
-    spec = getattr(main, "__spec__", None)
-    path = getattr(main, "__file__", None)
-    if main is None or path is None or (spec is not None and spec.name.endswith("__main__")):
-        return None
-    frame = inspect.currentframe()
-    while frame is not None and not (
-        frame.f_code.co_name == "<module>" and frame.f_globals.get("__name__") == "__main__"
-    ):
-        frame = frame.f_back
-    if frame is None:
-        return None
-    line = frame.f_lineno
-    try:
-        tree = ast.parse(Path(path).read_text(), filename=str(path))
-    except (OSError, SyntaxError, ValueError):
-        return None
-    for node in tree.body:
-        if isinstance(node, ast.If) and _is_main_test(node.test):
-            end = node.end_lineno or node.lineno
-            if node.lineno <= line <= end:
-                return None
-    return str(path), line
-
-
-def _is_main_test(test: ast.expr) -> bool:
-    """Whether ``test`` is ``__name__ == "__main__"`` (either way round)."""
-    if not (isinstance(test, ast.Compare) and len(test.ops) == 1):
-        return False
-    sides = [test.left, test.comparators[0]]
-    names = [s.id for s in sides if isinstance(s, ast.Name)]
-    values = [s.value for s in sides if isinstance(s, ast.Constant)]
-    return isinstance(test.ops[0], ast.Eq) and names == ["__name__"] and values == ["__main__"]
 
 
 def _run_workers(
@@ -604,64 +669,6 @@ def _run_workers(
     return result
 
 
-def _plan_summary(plan: Plan) -> dict[str, Any]:
-    """What every rank's plan must agree on before the samples are sharded: the samples
-    (with whether each has a prediction), the missing policy, protocols, classes and the
-    origin source (not the roots' paths, which may differ between nodes)."""
-    source = plan.source
-    return {
-        "samples": [[s.scene, s.token, s.prediction is not None] for s in plan.samples],
-        "missing": [plan.missing_policy, list(plan.missing_tokens)],
-        "protocols": list(plan.protocols),
-        "rayiou": plan.rayiou,
-        "classes": None if plan.classes is None else list(plan.classes),
-        "origins": None if source is None else [source.kind, source.version],
-    }
-
-
-def _plan_differences(mine: dict[str, Any], theirs: dict[str, Any], rank: int) -> str:
-    """What rank ``rank``'s plan summary changes from rank 0's, in a few words."""
-    parts = []
-    for key in mine:
-        if mine[key] == theirs[key]:
-            continue
-        if key == "samples":
-            here = {tuple(s[:2]) for s in mine[key]}
-            there = {tuple(s[:2]) for s in theirs[key]}
-            lacking = sorted(t for _, t in here - there)
-            extra = sorted(t for _, t in there - here)
-            text = f"samples: {len(mine[key])} on rank 0, {len(theirs[key])} on rank {rank}"
-            if lacking:
-                text += f" (rank {rank} lacks {list_tokens(lacking)})"
-            if extra:
-                text += f" (only rank {rank} has {list_tokens(extra)})"
-            if not lacking and not extra:
-                text += " (the same tokens; the predictions found differ)"
-            parts.append(text)
-        else:
-            parts.append(f"{key}: {mine[key]!r} on rank 0, {theirs[key]!r} on rank {rank}")
-    return "; ".join(parts)
-
-
-def _check_plans_agree(plan: Plan) -> None:
-    """Under torch.distributed, raise :class:`EvaluationSetupError` on every rank when the
-    ranks' plans differ (a partial copy of the tree on one node), before anything is
-    sharded or pooled: each rank shards its own plan, and mismatched shards would pool
-    wrong counts. A digest is compared first; the summaries only when it differs."""
-    summaries = gathered_if_different(_plan_summary(plan), None, torch.device("cpu"))
-    if summaries is None:
-        return
-    differences = [
-        f"rank {rank}: {_plan_differences(summaries[0], theirs, rank)}"
-        for rank, theirs in enumerate(summaries)
-        if theirs != summaries[0]
-    ]
-    raise EvaluationSetupError(
-        "the ranks see different evaluations (" + "; ".join(differences) + "): every rank "
-        "must see the same ground truth, predictions and options"
-    )
-
-
 def _run_here(plan: Plan, origins_fn: OriginsFn | None, progress: Progress) -> dict[str, Any]:
     """This process's shard (all samples outside torch.distributed), reduced over ranks."""
     rank, world = 0, 1
@@ -689,11 +696,15 @@ def evaluate(
     device: str = "cpu",
     progress: bool = False,
     progress_stream: TextIO | None = None,
+    benchmark: str = DEFAULT_BENCHMARK,
+    mave: str = "dataset",
 ) -> EvaluationReport:
-    """Score a folder of Occ3D-nuScenes predictions against the ground truth, on CPU.
+    """Score a folder of occupancy predictions against a benchmark's ground truth, on CPU.
 
     Args:
-        gt: the Occ3D root holding ``gts/<scene>/<token>/labels.npz``.
+        gt: the ground-truth root in the benchmark's layout (Occ3D-nuScenes: the Occ3D
+            root holding ``gts/<scene>/<token>/labels.npz``; ``dego eval --benchmarks``
+            and docs/evaluation.md list every layout).
         pred: the predictions: ``<token>.npz`` (array ``pred``, ``arr_0`` or
             ``semantics``), ``<token>.npy``, or ``<scene>/<token>/labels.npz`` (also under
             ``gts/``); ``(200, 200, 16)`` integer labels, 17 = free.
@@ -712,6 +723,10 @@ def evaluate(
             group, the ranks share the samples instead and every rank gets the report.
         device: where the metrics run.
         progress: show progress on ``progress_stream`` (stderr).
+        benchmark: the benchmark whose rules score the predictions (a key of
+            :data:`dego.evaluation.BENCHMARKS`; ``"occ3d-nuscenes"`` by default).
+        mave: OpenOcc v2's RayIoU / mAVE script: ``"dataset"`` (the default) or
+            ``"server"`` (:data:`dego.evaluation.benchmarks.MAVE_VARIANTS`).
 
     Returns:
         An :class:`EvaluationReport` (its metric reports hold fractions; its tables and
@@ -746,6 +761,8 @@ def evaluate(
         origins=origins,
         missing=missing,
         device=device,
+        benchmark=benchmark,
+        mave=mave,
     )
     distributed = dist.is_available() and (dist.is_initialized() or launched_by_torchrun())
     if distributed and workers > 1:

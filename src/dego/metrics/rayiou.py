@@ -31,6 +31,7 @@ from dego.classes import FREE_LABEL, NUM_CLASSES
 from dego.grid import VoxelGrid
 from dego.metrics.confusion import as_label_tensor, labels_in_range
 from dego.metrics.counts import CountingMetric, class_names
+from dego.metrics.report import _nanmean  # numpy's summation order, as SparseOcc / OccNet
 from dego.raycast import cast_bytes, cast_product, cast_sizes, generate_lidar_rays
 
 DEFAULT_THRESHOLDS = (1.0, 2.0, 4.0)
@@ -180,11 +181,6 @@ def _masked_bincount(labels: Tensor, mask: Tensor, num_classes: int) -> Tensor:
     """``(C,)`` int64 counts of ``labels`` (in ``0..C-1``) where ``mask`` is True."""
     counts = torch.zeros(num_classes, dtype=torch.int64, device=labels.device)
     return counts.scatter_add_(0, labels, mask.to(torch.int64))
-
-
-def _nanmean(values: Tensor) -> float:
-    finite = values[~values.isnan()]
-    return float(finite.mean()) if finite.numel() else math.nan
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

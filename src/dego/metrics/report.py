@@ -16,6 +16,12 @@ from torch import Tensor
 from dego import _serialization, _units
 from dego._typing import check_tensor_fields, typechecked
 
+AVERAGING_RULES = ("nanmean", "mean", "sequential-mean")
+"""How the per-class IoU of a class set becomes one number: ``"nanmean"`` skips NaN (the
+Occ3D devkit); ``"mean"`` (``numpy.mean``) does not, so a NaN class makes the mean NaN
+(SurroundOcc); ``"sequential-mean"`` is Python's ``sum(values) / len(values)``, added left
+to right (OpenOccupancy), which can differ from numpy's pairwise sum in the last bit."""
+
 
 @typechecked
 def per_class_iou(confusion: Integer[Tensor, "C C"]) -> Float[Tensor, " C"]:
@@ -38,6 +44,17 @@ def _nanmean(values: Tensor) -> float:
     rounded to 2 decimals at a tie (25.625 -> 25.63 against the devkit's 25.62)."""
     array = values.detach().double().cpu().numpy()
     return float(np.nanmean(array)) if (~np.isnan(array)).any() else math.nan
+
+
+def average(values: Tensor, rule: str = "nanmean") -> float:
+    """One of :data:`AVERAGING_RULES` over ``values`` (float64), summed as the official
+    code sums them."""
+    array = values.detach().double().cpu().numpy()
+    if rule == "mean":
+        return float(np.mean(array))
+    if rule == "sequential-mean":
+        return sum(float(v) for v in array) / len(array)
+    return _nanmean(values)
 
 
 _HEADINGS = {"iou": "IoU", "insm": "InsM", "scnm": "ScnM", "hcm": "HCM", "miou": "mIoU"}
@@ -78,6 +95,9 @@ class OccupancyReport(_serialization.DictForm):
         iou: geometric IoU of occupied (label != free) vs free, over the same voxels.
         group_means: nanmean of ``per_class`` over each group (``insm``, ``scnm``, ``hcm``
             by default), from the same pooled per-class vector.
+        averaging: how ``miou`` and the group means average (:data:`AVERAGING_RULES`):
+            ``"nanmean"`` (the default; the Occ3D devkit), ``"mean"`` or
+            ``"sequential-mean"``.
         protocol: ``"occ3d"``, ``"weak"`` or ``"surroundocc"`` (or ``"custom"`` for
             hand-built reports).
         evaluated_classes: the classes averaged into ``miou``.
@@ -96,6 +116,7 @@ class OccupancyReport(_serialization.DictForm):
     evaluated_classes: tuple[int, ...]
     groups: Mapping[str, tuple[int, ...]]
     class_names: tuple[str, ...]
+    averaging: str = "nanmean"
 
     @classmethod
     @typechecked
@@ -108,12 +129,18 @@ class OccupancyReport(_serialization.DictForm):
         class_names: Sequence[str],
         iou: float = math.nan,
         protocol: str = "custom",
+        averaging: str = "nanmean",
     ) -> OccupancyReport:
         """Summarise a per-class IoU vector (fractions, NaN for absent classes).
 
         This is the single place where mIoU and the group means are computed; it also
         lets published per-class numbers be re-summarised (divide percentages by 100).
+        ``averaging``: one of :data:`AVERAGING_RULES`.
         """
+        if averaging not in AVERAGING_RULES:
+            raise ValueError(
+                f"averaging: expected one of {list(AVERAGING_RULES)}, got {averaging!r}"
+            )
         per_class = torch.as_tensor(per_class, dtype=torch.float64).detach().cpu()
         if per_class.ndim != 1 or per_class.shape[0] != len(class_names):
             raise ValueError(
@@ -128,15 +155,16 @@ class OccupancyReport(_serialization.DictForm):
         frozen_groups = MappingProxyType({k: tuple(int(i) for i in v) for k, v in groups.items()})
         return cls(
             per_class=per_class,
-            miou=_nanmean(per_class[list(evaluated_classes)]),
+            miou=average(per_class[list(evaluated_classes)], averaging),
             iou=float(iou),
             group_means=MappingProxyType(
-                {k: _nanmean(per_class[list(v)]) for k, v in frozen_groups.items()}
+                {k: average(per_class[list(v)], averaging) for k, v in frozen_groups.items()}
             ),
             protocol=protocol,
             evaluated_classes=tuple(int(i) for i in evaluated_classes),
             groups=frozen_groups,
             class_names=tuple(class_names),
+            averaging=averaging,
         )
 
     def _group(self, name: str) -> float:
@@ -190,7 +218,9 @@ class OccupancyReport(_serialization.DictForm):
         '-' for absent classes."""
         summary = self.headline()
         lines = [
-            f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes, "
+            f"protocol: {self.protocol}, mIoU over {len(self.evaluated_classes)} classes"
+            + ("" if self.averaging == "nanmean" else f" ({self.averaging}, NaN kept)")
+            + ", "
             "IoU in percent",
             "| " + " | ".join(f"{heading(k):>6}" for k in summary) + " |",
             "|" + "|".join("-" * 8 for _ in summary) + "|",
@@ -209,4 +239,10 @@ class OccupancyReport(_serialization.DictForm):
         return self.table()
 
 
-__all__ = ["OccupancyReport", "heading", "per_class_iou"]
+__all__ = [
+    "AVERAGING_RULES",
+    "OccupancyReport",
+    "average",
+    "heading",
+    "per_class_iou",
+]
