@@ -394,3 +394,12 @@ def test_occ3d_nuscenes_rayiou_over_both_class_sets(tmp_path: Path) -> None:
     weak = dego.evaluate(tree.gt, tree.pred, infos=tree.infos, classes=fifteen.class_ids)
     assert weak.rayiou.rayiou == fifteen.rayiou and report.rayiou is seventeen
     assert "15 classes (the weak set)" in report.tables()
+
+
+def test_rerun_is_refused_for_other_benchmarks(tmp_path: Path) -> None:
+    from dego.cli import main
+
+    argv = ["eval", "--benchmark", "occ3d-waymo", "--gt", str(tmp_path), "--pred", str(tmp_path)]
+    with pytest.raises(SystemExit) as stop:
+        main([*argv, "--rerun", str(tmp_path / "eval.rrd")])
+    assert stop.value.code == 2 and not (tmp_path / "eval.rrd").exists()

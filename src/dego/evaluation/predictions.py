@@ -190,7 +190,7 @@ def read_prediction(path: PathLike, benchmark: Any) -> tuple[Tensor, Tensor | No
         ValueError: a wrong shape (naming the benchmark and its grid), labels outside the
             benchmark's range (e.g. Occ3D ids scored as OpenOcc v2), a corrupt file.
     """
-    from dego.evaluation.layouts import _labels, densify_rows, layout_of
+    from dego.evaluation.layouts import SparseRows, _labels, densify_rows, layout_of
     from dego.evaluation.layouts import _read_npy as read_any_npy
 
     path = Path(path)
@@ -200,13 +200,13 @@ def read_prediction(path: PathLike, benchmark: Any) -> tuple[Tensor, Tensor | No
     flow = None
     if path.suffix == ".npy":
         shape, dtype = npy_header(path, f"a {benchmark.name} prediction")
-        sparse = len(shape) == 2 and hasattr(layout, "order")
+        sparse = len(shape) == 2 and isinstance(layout, SparseRows)
         logits = benchmark.logits and dtype.kind == "f" and len(shape) == 4
         if not sparse and not logits:
             _check_shape(str(path), tuple(shape), benchmark)
         array = read_any_npy(path, f"a {benchmark.name} prediction")
         where = str(path)
-        if sparse:
+        if isinstance(layout, SparseRows) and sparse:
             return densify_rows(where, array, benchmark, layout.order, layout.vote), None
         if logits:
             if array.shape[0] != benchmark.num_classes:

@@ -387,7 +387,8 @@ class Tally:
         if sample.prediction is None:
             return torch.full(gt.semantics.shape, spec.free_label, device=device), None
         if spec.name == DEFAULT_BENCHMARK:
-            pred = load_prediction(sample.prediction, expected_shape=gt.semantics.shape)
+            shape = cast(tuple[int, int, int], tuple(gt.semantics.shape))
+            pred = load_prediction(sample.prediction, expected_shape=shape)
             return pred.to(device), None
         pred, flow = read_prediction(sample.prediction, spec)
         return pred.to(device), flow

@@ -82,8 +82,8 @@ def geometric_iou(geometric: Tensor, rule: str, samples: int) -> float:
         a, b, p = tp / samples, (tp + fn) / samples, (tp + fp) / samples
         return a / (b + p - a) if b + p - a else math.nan
     if rule == "absent-is-one-float32":
-        a, b, p = (torch.tensor(float(v), dtype=torch.float32) for v in (tp, tp + fn, tp + fp))
-        return float(a / (b + p - a))
+        t, g, q = (torch.tensor(float(v), dtype=torch.float32) for v in (tp, tp + fn, tp + fp))
+        return float(t / (g + q - t))
     if rule == "epsilon":  # MonoScene's completion IoU: 0 when nothing is right
         return tp / (tp + fp + fn) if tp else 0.0
     return tp / (tp + fp + fn) if tp + fp + fn else math.nan

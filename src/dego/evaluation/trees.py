@@ -236,12 +236,11 @@ def _write_sample(
     c, free = spec.num_classes, spec.free_label
     write = layout.write  # type: ignore[attr-defined]
     if spec.layout == "occ3d":
-        semantics = window.numpy()
         write(
             gt_root,
             scene,
             token,
-            {"semantics": semantics, "mask_camera": camera, "mask_lidar": lidar},
+            {"semantics": window.numpy(), "mask_camera": camera, "mask_lidar": lidar},
         )
         pred = perturb(window, generator, FREE_LABEL, FREE_LABEL)
         np.savez_compressed(pred_root / f"{token}.npz", pred=pred.numpy())

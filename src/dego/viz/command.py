@@ -82,6 +82,11 @@ def run_eval_recording(
     ``--limit`` samples (rank 0 only under torchrun)."""
     if args.limit is not None and args.rerun is None:
         parser.error("--limit: only with --rerun (every sample is scored either way)")
+    benchmark = getattr(args, "benchmark", "occ3d-nuscenes")
+    if args.rerun is not None and benchmark != "occ3d-nuscenes":
+        parser.error(
+            f"--rerun: records occ3d-nuscenes samples only, not {benchmark}; score without --rerun"
+        )
     created += rerun_target(parser, args.rerun)
     code = score()
     if args.rerun is None or code == 2 or os.environ.get("RANK", "0") != "0":
