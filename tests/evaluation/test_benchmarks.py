@@ -5,6 +5,7 @@ sample, per class; no dego scoring code), plus the bad inputs the issue names.""
 from __future__ import annotations
 
 import gzip
+import json
 import math
 import pickle
 import subprocess
@@ -403,3 +404,84 @@ def test_rerun_is_refused_for_other_benchmarks(tmp_path: Path) -> None:
     with pytest.raises(SystemExit) as stop:
         main([*argv, "--rerun", str(tmp_path / "eval.rrd")])
     assert stop.value.code == 2 and not (tmp_path / "eval.rrd").exists()
+
+
+def _waymo_file(tmp_path: Path, **arrays: np.ndarray) -> Path:
+    shape = (200, 200, 16)
+    base = {
+        "voxel_label": np.full(shape, 23, dtype=np.uint8),
+        "origin_voxel_state": np.ones(shape, dtype=np.uint8),
+        "final_voxel_state": np.ones(shape, dtype=np.uint8),
+        "infov": np.ones(shape, dtype=np.uint8),
+    }
+    base.update(arrays)
+    path = tmp_path / "000" / "001_04.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **{k: v for k, v in base.items() if v is not None})
+    return path
+
+
+@pytest.mark.parametrize(
+    ("arrays", "message"),
+    [
+        ({"infov": None}, r"missing array\(s\) \['infov'\]"),
+        ({"voxel_label": np.zeros((200, 200, 32), np.uint8)}, r"occ3d-waymo expects"),
+        ({"voxel_label": np.full((200, 200, 16), 17, np.uint8)}, r"label\(s\) \[17\]"),
+        ({"final_voxel_state": np.full((200, 200, 16), 2, np.uint8)}, "0/1 or bool mask"),
+    ],
+    ids=["missing key", "shape", "label", "mask"],
+)
+def test_waymo_files_of_another_kind_are_refused(tmp_path: Path, arrays, message) -> None:
+    spec = get_benchmark("occ3d-waymo")
+    path = _waymo_file(tmp_path, **arrays)
+    with pytest.raises(ValueError, match=message):
+        layout_of(spec).read(path, spec)
+    assert layout_of(spec).read(_waymo_file(tmp_path / "ok"), spec).semantics.max() == 15
+
+
+def test_a_free_id_where_the_benchmark_has_none_is_refused(tmp_path: Path) -> None:
+    """23 is Waymo's stored free; in SurroundOcc rows it is not a label."""
+    spec = get_benchmark("surroundocc")
+    np.save(tmp_path / "a.npy", np.array([[1, 2, 3, 23]]))
+    with pytest.raises(ValueError, match=r"row label\(s\) \[23\].*another benchmark"):
+        layout_of(spec).read(tmp_path / "a.npy", spec)
+    np.save(tmp_path / "b.npy", np.array([[1.5, 2, 3, 4]]))
+    with pytest.raises(ValueError, match="whole numbers"):
+        layout_of(spec).read(tmp_path / "b.npy", spec)
+
+
+def test_openocc_ground_truth_without_flow_is_refused(tmp_path: Path) -> None:
+    spec = get_benchmark("openocc-v2")
+    path = tmp_path / "labels.npz"
+    np.savez(path, semantics=np.full((200, 200, 16), 16, np.uint8))
+    with pytest.raises(ValueError, match=r"missing array\(s\) \['flow'\]"):
+        layout_of(spec).read(path, spec)
+
+
+def test_a_scene_folder_linked_twice_is_a_setup_error(tmp_path: Path) -> None:
+    """Issue 50 (1): ``ln -s scene-0 gts/scene-0-copy`` scored every sample twice."""
+    tree = write_benchmark_tree("occ3d-nuscenes", tmp_path / "t", frames=1)
+    gts = Path(tree.gt) / "gts"
+    [scene] = list(gts.iterdir())
+    (gts / f"{scene.name}-copy").symlink_to(scene, target_is_directory=True)
+    with pytest.raises(EvaluationSetupError, match="appears twice"):
+        dego.evaluate(tree.gt, tree.pred, rayiou=False)
+
+
+def test_a_protocol_the_benchmark_lacks_is_named(trees) -> None:
+    tree = trees["occ3d-waymo"]
+    with pytest.raises(EvaluationSetupError, match=r"occ3d-waymo has no protocol 'weak'"):
+        dego.evaluate(tree.gt, tree.pred, benchmark="occ3d-waymo", protocol="weak")
+
+
+@pytest.mark.slow
+def test_openocc_reports_carry_the_rules_and_the_flow(tmp_path: Path) -> None:
+    tree = write_benchmark_tree("openocc-v2", tmp_path / "o", frames=1)
+    report = dego.evaluate(tree.gt, tree.pred, benchmark="openocc-v2", infos=tree.infos)
+    data = json.loads(report.to_json())
+    assert data["benchmark"] == "openocc-v2" and data["rules"] == list(report.rules)
+    assert data["flow"]["variant"] == "dataset"
+    assert data["flow"]["occ_score"] == pytest.approx(100 * report.flow["occ_score"])
+    markdown = report.to_markdown()
+    assert "- benchmark: openocc-v2" in markdown and "## Flow (OpenOcc v2)" in markdown
+    assert "mAVE (dataset script)" in report.tables()

@@ -708,8 +708,11 @@ def evaluate(
             and docs/evaluation.md list every layout).
         pred: the predictions: ``<token>.npz`` (array ``pred``, ``arr_0`` or
             ``semantics``), ``<token>.npy``, or ``<scene>/<token>/labels.npz`` (also under
-            ``gts/``); ``(200, 200, 16)`` integer labels, 17 = free.
-        protocol: ``"occ3d"``, ``"weak"`` or ``"both"``.
+            ``gts/``); ``(200, 200, 16)`` integer labels, 17 = free. Other benchmarks:
+            their own grid and ids (``BENCHMARKS[name].prediction``), also in the GT's
+            layout, and OpenOccupancy's logits (:func:`read_prediction`).
+        protocol: ``"occ3d"``, ``"weak"`` or ``"both"`` (Occ3D-nuScenes); for another
+            benchmark one of its protocols (``BENCHMARKS[name].voxel``) or ``"all"``.
         rayiou: also compute RayIoU (needs an origin source).
         classes: the classes averaged into mIoU and RayIoU instead of the protocol's default.
         infos: an mmdet3d ``nuscenes_infos_val.pkl``: its tokens, in file order, are the

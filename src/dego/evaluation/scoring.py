@@ -26,7 +26,7 @@ from dego.evaluation.layouts import GroundTruth
 from dego.metrics.confusion import binary_occupancy_confusion, confusion_matrix
 from dego.metrics.rayiou import RayIoUReport, RayIoUSpec
 from dego.metrics.report import OccupancyReport, per_class_iou
-from dego.raycast import _voxel_rays, cast_product, generate_lidar_rays
+from dego.raycast import _voxel_rays, cast_product
 
 MONOSCENE_EPSILON = 1e-5
 
@@ -293,10 +293,6 @@ def occ_score(rayiou: float, mave_value: float) -> float:
     if math.isnan(mave_value):
         return math.nan
     return rayiou * 0.9 + max(1 - mave_value, 0.0) * 0.1
-
-
-def default_rays() -> Tensor:
-    return generate_lidar_rays()
 
 
 __all__ = [
