@@ -34,8 +34,9 @@ class GroundTruth:
     """One sample's ground truth on the benchmark's grid.
 
     Attributes:
-        semantics: ``(X, Y, Z)`` int64 labels in ``0..C-1`` (a stored free remapped to the
-            free label) or the benchmark's ignore label.
+        semantics: ``(X, Y, Z)`` integer labels in ``0..C-1`` (a stored free remapped to
+            the free label) or the benchmark's ignore label: uint8 as Occ3D ships them,
+            int64 where a reader remaps or densifies.
         masks: bool ``(X, Y, Z)`` masks by their name in the files.
         flow: ``(X, Y, Z, 2)`` float32 flow (OpenOcc v2), or ``None``.
     """
@@ -191,7 +192,10 @@ class NpzTree(Layout):
     """``<scene>/<token>/labels.npz`` (Occ3D-nuScenes, OpenOcc v2), under ``gts/`` or not."""
 
     name = "occ3d"
-    pattern = f"[gts/]<scene>/<token>/{LABELS_FILENAME}"
+    pattern = (
+        f"gts/<scene>/<token>/{LABELS_FILENAME} (the Occ3D release) or "
+        f"<scene>/<token>/{LABELS_FILENAME}"
+    )
 
     def base(self, root: Path) -> Path:
         return root / "gts" if (root / "gts").is_dir() else root
@@ -213,7 +217,7 @@ class NpzTree(Layout):
     def read(self, path: Path, benchmark: Benchmark) -> GroundTruth:
         labels = load_occ3d_labels(path, num_classes=benchmark.num_classes)
         return GroundTruth(
-            labels.semantics.long(),
+            labels.semantics,
             {"mask_camera": labels.mask_camera, "mask_lidar": labels.mask_lidar},
         )
 

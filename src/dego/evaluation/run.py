@@ -37,7 +37,6 @@ import torch.multiprocessing as torch_mp
 from dego._checks import check_int
 from dego._typing import typechecked
 from dego._version import __version__
-from dego.data.occ3d import LABELS_FILENAME, load_occ3d_labels
 from dego.evaluation.benchmarks import DEFAULT_BENCHMARK, MAVE_VARIANTS, Benchmark, get_benchmark
 from dego.evaluation.errors import (
     EvaluationSetupError,
@@ -45,7 +44,7 @@ from dego.evaluation.errors import (
     SampleFailure,
     list_tokens,
 )
-from dego.evaluation.layouts import GroundTruth, NpzTree, check_unique, layout_of
+from dego.evaluation.layouts import GroundTruth, layout_of
 from dego.evaluation.origins import (
     NO_ORIGINS_MESSAGE,
     DirectoryOrigins,
@@ -170,23 +169,6 @@ def _classes(classes: Sequence[int] | None, benchmark: Benchmark) -> tuple[int, 
     return tuple(out)
 
 
-def _ground_truth(root: Path) -> tuple[Path, list[tuple[str, str]]]:
-    """The folder holding ``<scene>/<token>/labels.npz`` (``root/gts`` as Occ3D ships it,
-    or ``root`` itself: the ``gts`` folder, or SparseOcc's ``data/nuscenes/occ3d``) and
-    its ``(scene, token)`` samples, sorted."""
-    if not root.is_dir():
-        raise EvaluationSetupError(f"--gt: {root} is not an existing directory")
-    labels_root = root / "gts" if (root / "gts").is_dir() else root
-    entries = check_unique(NpzTree().find(labels_root), labels_root)
-    samples = sorted((e.scene, e.token) for e in entries)
-    if not samples:
-        raise EvaluationSetupError(
-            f"--gt: no ground truth under {root}: expected gts/<scene>/<token>/"
-            f"{LABELS_FILENAME} (the Occ3D release) or <scene>/<token>/{LABELS_FILENAME}"
-        )
-    return labels_root, samples
-
-
 def prepare(
     gt: PathLike,
     pred: PathLike,
@@ -230,13 +212,9 @@ def prepare(
     if not pred_root.is_dir():
         raise EvaluationSetupError(f"--pred: {pred_root} is not a directory")
     layout = layout_of(spec)
-    if spec.layout == "occ3d":
-        labels_root, tree_samples = _ground_truth(Path(gt))
-        files = {t: str(labels_root / s / t / LABELS_FILENAME) for s, t in tree_samples}
-    else:
-        labels_root, entries = layout.samples(Path(gt), spec)
-        tree_samples = [(e.scene, e.token) for e in entries]
-        files = {e.token: str(e.path) for e in entries}
+    labels_root, entries = layout.samples(Path(gt), spec)
+    tree_samples = [(e.scene, e.token) for e in entries]
+    files = {e.token: str(e.path) for e in entries}
     scene_of = {token: scene for scene, token in tree_samples}
 
     keyframes = None
@@ -372,10 +350,6 @@ class Tally:
 
     def _read_gt(self, sample: Sample, device: torch.device) -> GroundTruth:
         spec = self.plan.spec
-        if spec.name == DEFAULT_BENCHMARK:
-            labels = load_occ3d_labels(sample.gt_file).to(device)
-            masks = {"mask_camera": labels.mask_camera, "mask_lidar": labels.mask_lidar}
-            return GroundTruth(labels.semantics, masks)
         gt = layout_of(spec).read(Path(sample.gt_file), spec)
         masks = {k: v.to(device) for k, v in gt.masks.items()}
         return GroundTruth(gt.semantics.to(device), masks, gt.flow)
