@@ -279,6 +279,44 @@ def test_atomic_writer_is_all_or_nothing(tmp_path: Path, monkeypatch: pytest.Mon
 # -- Ctrl-C -----------------------------------------------------------------------------------
 
 
+_CAUGHT_INTERRUPT = """
+import ctypes, sys
+
+def interrupt_caught_inside_pyrun_string():
+    run = ctypes.pythonapi.PyRun_String
+    run.restype = ctypes.py_object
+    run.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
+    try:  # what an extension calling PyRun_String during a Ctrl-C leaves behind
+        run(b"raise KeyboardInterrupt", 257, {}, {})
+    except KeyboardInterrupt:
+        pass
+
+def hook(event, args):  # as dego starts (a later PyRun_String that succeeds clears the note)
+    if event == "import" and args[0] == "dego._entry" and not hasattr(sys, "_dego_hit"):
+        sys._dego_hit = True
+        interrupt_caught_inside_pyrun_string()
+
+sys.addaudithook(hook)
+"""
+
+
+def test_python_m_dego_keeps_its_status_after_a_caught_interrupt(tmp_path: Path) -> None:
+    # CPython remembers a KeyboardInterrupt that left PyRun_String, caught or not, and under
+    # -m ends the process by SIGINT (returncode -2) instead of with main's status: the
+    # cause of a Ctrl-C test that once ended with -2 after printing "dego: interrupted".
+    (tmp_path / "sitecustomize.py").write_text(_CAUGHT_INTERRUPT)
+    path = os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])
+    done = subprocess.run(
+        [sys.executable, "-m", "dego", "--version"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": path},
+        timeout=120,
+    )
+    assert done.returncode == 0, (done.returncode, done.stderr)
+    assert done.stdout.startswith("dego ")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("command", ["demo", "study"])
 def test_ctrl_c_ends_with_130_one_line_and_no_partial_outputs(command: str, tmp_path: Path) -> None:

@@ -2,6 +2,8 @@
 
 import sys
 
-from dego._entry import main
+from dego._entry import forget_caught_interrupts, main
 
-sys.exit(main())
+status = main()
+forget_caught_interrupts()
+sys.exit(status)
