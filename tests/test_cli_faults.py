@@ -7,6 +7,7 @@ failure injected into the file writes, and the Ctrl-C tests interrupt real proce
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import signal
 import subprocess
@@ -18,7 +19,9 @@ import pytest
 import torch
 
 import dego.demo.command
+import dego.demo.feedforward.command
 import dego.demo.study.command
+import dego.evaluation.command
 from dego.cli import main
 from tests.helpers.cli_faults import FullDisk, usage_error
 from tests.helpers.repo import ROOT, needs_source_tree
@@ -26,13 +29,16 @@ from tests.helpers.repo import ROOT, needs_source_tree
 
 @pytest.fixture
 def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Starting a demo or a study fails the test: validation must come first."""
+    """Starting a demo, a study, a training or an evaluation fails the test: validation
+    must come first."""
 
     def started(*args: object, **kwargs: object) -> int:
         raise AssertionError("the work started before the flags were checked")
 
     monkeypatch.setattr(dego.demo.command, "run_demo", started)
     monkeypatch.setattr(dego.demo.study.command, "run_study", started)
+    monkeypatch.setattr(dego.demo.feedforward.command, "run_feedforward_study", started)
+    monkeypatch.setattr(dego.evaluation.command, "evaluate", started)
 
 
 # -- bad flags are usage errors before any work -------------------------------------------
@@ -198,6 +204,92 @@ def test_eval_output_paths_are_checked_before_scoring(
     assert a_file.read_text() == "mine\n"
 
 
+OCCUPIED = {
+    "demo": (["demo", "--quick"], "losses.png", ["results.md", "results.json"]),
+    "study": (["study", "--quick"], "study.png", ["study.md", "study.json"]),
+    "train": (
+        ["train", "--quick", "--variants", "static,rigid", "--no-cache"],
+        "heldout_rigid.png",
+        ["train.md", "train.json"],
+    ),
+}
+"""Per command: its arguments, the output whose name a folder takes, its other outputs."""
+
+
+@pytest.mark.parametrize("command", ["demo", "study", "train", "eval"])
+def test_an_output_name_taken_by_a_folder_is_refused_before_any_work(
+    command: str, no_work: None, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every file a command writes is checked before its work starts: a folder in the
+    place of one (the last one written) is a usage error naming it, and the previous
+    outputs stay as they were. (Was: demo, study and train ran to the end, then replaced
+    the first outputs and failed on the folder with a traceback; eval checked already.)"""
+    out = tmp_path / "out"
+    if command == "eval":
+        flag, taken, others = "--markdown", "report.md", ["report.json"]
+        argv = ["eval", "--gt", str(tmp_path), "--pred", str(tmp_path)]
+        argv += ["--json", str(out / "report.json"), "--markdown", str(out / taken)]
+    else:
+        flag, (argv, taken, others) = "--out", OCCUPIED[command]
+        argv = [*argv, "--out", str(out)]
+    before = _previous_run(out, others)
+    (out / taken).mkdir()
+    message = f"{flag}: {out / taken} is a directory, expected a file name"
+    if command == "eval":
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.strip().splitlines() == [f"error: {message}"], err
+    else:
+        assert usage_error(argv, capsys) == f"dego {command}: error: {message}"
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+    assert sorted(p.name for p in out.iterdir()) == sorted([*before, taken])
+
+
+needs_rerun = pytest.mark.skipif(
+    importlib.util.find_spec("rerun") is None, reason="--rerun needs rerun-sdk"
+)
+
+
+@needs_rerun
+@pytest.mark.parametrize("spelling", ["the same", "relative and absolute", "a symbolic link"])
+@pytest.mark.parametrize("flag", ["--json", "--markdown"])
+def test_eval_rerun_onto_a_report_is_refused_before_scoring(
+    spelling: str,
+    flag: str,
+    no_work: None,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Was: exit 0, the report overwritten by the recording."""
+    monkeypatch.chdir(tmp_path)
+    recording = tmp_path / "r.rrd"
+    report: Path = recording
+    if spelling == "relative and absolute":
+        report = Path("r.rrd")
+    elif spelling == "a symbolic link":
+        report = tmp_path / "link.txt"
+        report.symlink_to(recording)
+    argv = ["eval", "--gt", str(tmp_path), "--pred", str(tmp_path), flag, str(report)]
+    assert main([*argv, "--rerun", str(recording)]) == 2
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == [f"error: {flag} and --rerun name the same file, {report}"]
+    assert not recording.exists()
+
+
+@needs_rerun
+def test_demo_rerun_onto_one_of_its_outputs_is_refused_before_any_work(
+    no_work: None, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    before = _previous_run(out, ["results.md", "results.json"])
+    link = tmp_path / "demo.rrd"
+    link.symlink_to(out / "results.json")
+    line = usage_error(["demo", "--quick", "--out", str(out), "--rerun", str(link)], capsys)
+    assert line == f"dego demo: error: --rerun and --out name the same file, {link}"
+    assert _contents(out) == before
+
+
 # -- every output is written whole or not at all ---------------------------------------------
 
 
@@ -266,14 +358,63 @@ def test_atomic_writer_is_all_or_nothing(tmp_path: Path, monkeypatch: pytest.Mon
     before = _previous_run(tmp_path, ["a.txt", "b.bin"])
     files = {tmp_path / "a.txt": "new a\n", tmp_path / "b.bin": b"new b\n"}
     FullDisk(monkeypatch, tmp_path.resolve())
-    with pytest.raises(OSError, match="No space left"):
+    with pytest.raises(OSError, match="No space left") as error:
         write_files(files)
+    assert error.value.filename == str(tmp_path / "b.bin")  # the file, not a temporary one
     assert _contents(tmp_path) == before
     monkeypatch.undo()
     assert write_files(files) == list(files)
     assert _contents(tmp_path) == {"a.txt": b"new a\n", "b.bin": b"new b\n"}
     write_text(tmp_path / "sub" / "c.txt", "c\n")  # parents are created
     assert (tmp_path / "sub" / "c.txt").read_text() == "c\n"
+
+
+def test_atomic_writer_refuses_a_folder_in_a_file_s_place_before_moving_any(
+    tmp_path: Path,
+) -> None:
+    """Was: a.txt replaced, then the rename onto the folder failed: half-new files."""
+    from dego._atomic import write_files
+
+    before = _previous_run(tmp_path, ["a.txt", "c.txt"])
+    (tmp_path / "b.png").mkdir()
+    files = {tmp_path / name: f"new {name}\n" for name in ("a.txt", "b.png", "c.txt")}
+    with pytest.raises(IsADirectoryError) as error:
+        write_files(files)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.png", "c.txt"]
+    assert error.value.filename == str(tmp_path / "b.png")
+
+
+def test_atomic_writer_puts_back_what_it_replaced_when_a_move_fails(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A move that fails midway (here the third) leaves the files as they were: the
+    replaced ones get their previous content back, a new one is removed again; the error
+    names the target, not the temporary file."""
+    import errno
+
+    from dego._atomic import write_files
+
+    before = _previous_run(tmp_path, ["a.txt", "c.txt"])
+    files = {tmp_path / name: f"new {name}\n" for name in ("a.txt", "b.txt", "c.txt")}
+    real_replace, moves = os.replace, []
+
+    def replace(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+        if Path(src).name.endswith(".tmp") and not Path(dst).name.endswith(".tmp"):
+            moves.append(Path(dst).name)
+            if len(moves) == 3:
+                raise OSError(errno.EIO, os.strerror(errno.EIO), os.fspath(src), os.fspath(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(OSError, match="Input/output error") as error:
+        write_files(files)
+    assert moves[:3] == ["a.txt", "b.txt", "c.txt"]  # then a.txt is put back
+    assert _contents(tmp_path) == before  # b.txt (new) is gone again; no temporary files
+    assert error.value.filename == str(tmp_path / "c.txt")
+    monkeypatch.undo()
+    write_files(files)
+    assert _contents(tmp_path) == {path.name: f"new {path.name}\n".encode() for path in files}
 
 
 # -- Ctrl-C -----------------------------------------------------------------------------------
@@ -372,10 +513,15 @@ def test_the_documented_flag_bounds_are_the_code_s() -> None:
     evaluation = (ROOT / "docs" / "evaluation.md").read_text()
     assert f"N local processes (1-{MAX_WORKERS})" in evaluation
     # the bounds of dego eval's inputs (issue 38)
-    from dego.data.safe_pickle import ITEM_ALLOWANCE, ITEMS_PER_BYTE
+    from dego.data._pickle_scan import MEMO_SLACK, TUPLE_NODE_ALLOWANCE, TUPLE_NODES_PER_BYTE
+    from dego.data.safe_pickle import BUDGET_ALLOWANCE, BUDGET_PER_BYTE
     from dego.metrics.counts import DIGEST_BYTES
 
-    assert f"at most {ITEMS_PER_BYTE} items per byte of the file plus {ITEM_ALLOWANCE:,}" in (
+    assert f"at most {BUDGET_PER_BYTE} bytes per byte of the file plus {BUDGET_ALLOWANCE:,}" in (
+        validation
+    )
+    assert f"memo indices more than {MEMO_SLACK:,} beyond" in validation
+    assert f"exceed {TUPLE_NODES_PER_BYTE} per byte read plus {TUPLE_NODE_ALLOWANCE:,}" in (
         validation
     )
     assert f"compare a {DIGEST_BYTES}-byte digest of their plans" in validation

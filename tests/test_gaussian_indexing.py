@@ -1,8 +1,9 @@
 """GaussianSet as a tensor-like container: len, iteration, indexing over the batch and
-Gaussian axes, and .cpu() / .cuda() / .float() / .double()."""
+Gaussian axes, and .cpu() / .cuda() / .float() / .double() / .half() / .bfloat16()."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given
@@ -61,6 +62,58 @@ def test_tensor_and_mask_indices() -> None:
     assert_fields(unbatched[2:5], lambda _, t: t[0, 2:5])  # unbatched: the index is on N
 
 
+def assert_same_set(got: GaussianSet, expected: GaussianSet) -> None:
+    assert [n for n, _ in got.items()] == [n for n, _ in expected.items()]
+    for name, value in expected.items():
+        torch.testing.assert_close(getattr(got, name), value, rtol=0, atol=0)
+
+
+def test_numpy_index_arrays_index_as_the_same_tensors() -> None:
+    gs = batched()
+    picks = np.array([4, 0, 4, -1])
+    mask = np.arange(N) % 3 == 0
+    per_item = np.tile(picks, (B, 1))
+    cases = [
+        ((slice(None), picks), (slice(None), torch.as_tensor(picks))),
+        ((0, picks), (0, torch.as_tensor(picks))),
+        ((slice(None), mask), (slice(None), torch.as_tensor(mask))),
+        ((Ellipsis, mask), (Ellipsis, torch.as_tensor(mask))),
+        ((slice(None), per_item), (slice(None), torch.as_tensor(per_item))),
+        ((slice(None), np.array([4, 0], np.uint8)), (slice(None), torch.tensor([4, 0]))),
+        (np.array([2, 0]), torch.tensor([2, 0])),  # the batch axis
+        (np.array([True, False, True]), torch.tensor([True, False, True])),
+        ((np.int64(1), slice(2, 5)), (1, slice(2, 5))),
+    ]
+    for key, same in cases:
+        assert_same_set(gs[key], gs[same])
+    assert_fields(gs[:, mask], lambda _, t: t[:, torch.as_tensor(mask)])
+    assert_same_set(gs.select(picks), gs.select(torch.as_tensor(picks)))
+    with pytest.raises(IndexError, match="int on the Gaussian axis"):
+        gs[0, np.int64(3)]
+
+
+@pytest.mark.parametrize(
+    ("index", "got"),
+    [
+        ("abc", "got str"),
+        (1.5, "got float"),
+        (torch.tensor([0.0, 1.0]), "got a torch.float32 tensor"),
+        (np.array([0.0, 1.0]), "got a numpy ndarray of dtype float64"),
+        ([0, "1"], "got a sequence that holds other values than ints"),
+        ({0, 1}, "got set"),
+    ],
+)
+def test_other_gaussian_axis_indices_are_one_line_type_errors(index: object, got: str) -> None:
+    with pytest.raises(TypeError) as caught:
+        batched()[:, index]
+    message = str(caught.value)
+    assert "\n" not in message and message.endswith(got), message
+    assert message.startswith(
+        "GaussianSet index: the Gaussian axis N takes a slice, a sequence of ints, or an "
+        "integer or bool torch.Tensor / numpy.ndarray"
+    )
+
+
 def test_indices_that_would_drop_the_gaussian_axis_are_refused() -> None:
     gs = batched()
     with pytest.raises(IndexError, match="int on the Gaussian axis"):
@@ -85,6 +138,28 @@ def test_dtype_and_device_helpers() -> None:
     )
     assert_fields(doubled.float(), lambda _, t: t)
     assert gs.cpu().device == torch.device("cpu")
+
+
+@pytest.mark.parametrize(
+    ("method", "dtype"),
+    [
+        ("half", torch.float16),
+        ("bfloat16", torch.bfloat16),
+        ("float", torch.float32),
+        ("double", torch.float64),
+    ],
+)
+def test_half_bfloat16_float_double_cast_every_field(method: str, dtype: torch.dtype) -> None:
+    gs = batched(dtype=torch.float64)
+    cast = getattr(gs, method)()
+    assert isinstance(cast, GaussianSet) and cast.dtype == dtype
+    assert [name for name, _ in cast.items()] == list(GaussianSet.FIELDS)  # none dropped
+    for name, value in cast.items():
+        assert value.dtype == dtype, name
+        assert value.shape == getattr(gs, name).shape, name
+        torch.testing.assert_close(value, getattr(gs, name).to(dtype), rtol=0, atol=0)
+    assert getattr(gs.replace(features=None), method)().features is None
+    assert gs.dtype == torch.float64  # the original set is unchanged
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")

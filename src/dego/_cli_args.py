@@ -16,13 +16,13 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn, TextIO
 
 import torch
 
-from dego._atomic import check_output_file, make_output_dir
+from dego._atomic import check_output_file, check_output_files, make_output_dir, same_file
 from dego._checks import repeated_values
 
 INTERRUPTED_STATUS = 130
@@ -250,6 +250,41 @@ def output_dir(parser: argparse.ArgumentParser, flag: str, path: Path) -> list[P
         return make_output_dir(path)
     except OSError as error:
         parser.error(f"{flag}: {error.strerror or error}")
+
+
+def output_problem(outputs: Sequence[tuple[str, Path | None]], created: list[Path]) -> str | None:
+    """Why the files a command writes cannot be written, as one line, or ``None``.
+
+    ``outputs``: ``(flag, path)`` of every output file (``None``: not asked for), e.g.
+    ``("--out", out / "results.md")``. Two paths naming one file (after resolving links and
+    relative spellings, :func:`dego._atomic.same_file`) are refused, naming both flags; then
+    every path is checked with :func:`dego._atomic.check_output_files` (a directory in its
+    place, a folder that cannot be created or written), naming the flag. The folders made
+    are added to ``created``. Called before any work."""
+    given = [(flag, Path(path)) for flag, path in outputs if path is not None]
+    for index, (flag, path) in enumerate(given):
+        for other, other_path in given[index + 1 :]:
+            if same_file(path, other_path):
+                if flag == other:
+                    return f"{flag}: {path} is named twice"
+                return f"{flag} and {other} name the same file, {path}"
+    for flag in dict.fromkeys(flag for flag, _ in given):
+        try:
+            created += check_output_files(path for name, path in given if name == flag)
+        except OSError as error:
+            return f"{flag}: {error.strerror or error}"
+    return None
+
+
+def check_outputs(
+    parser: argparse.ArgumentParser,
+    outputs: Sequence[tuple[str, Path | None]],
+    created: list[Path],
+) -> None:
+    """:func:`output_problem`, as a usage error (exit status 2) of ``parser``."""
+    problem = output_problem(outputs, created)
+    if problem is not None:
+        parser.error(problem)
 
 
 def config_error(parser: argparse.ArgumentParser, error: ValueError) -> NoReturn:

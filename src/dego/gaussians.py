@@ -13,9 +13,10 @@ import math
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 import torch.utils._pytree as pytree
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Bool, Float, Int, Integer
 from torch import Tensor
 
 from dego import _serialization
@@ -495,6 +496,14 @@ class GaussianSet(_serialization.DictForm):
         """Every field in float64."""
         return self.to(torch.float64)
 
+    def half(self) -> GaussianSet:
+        """Every field in float16."""
+        return self.to(torch.float16)
+
+    def bfloat16(self) -> GaussianSet:
+        """Every field in bfloat16."""
+        return self.to(torch.bfloat16)
+
     # -- batch and Gaussian axes ------------------------------------------------------
     def __len__(self) -> int:
         """The number of sets along the first batch axis (``B`` of a ``(B, N)`` set), as
@@ -516,9 +525,13 @@ class GaussianSet(_serialization.DictForm):
         axes) indexes the batch as a tensor of shape ``batch_shape`` would be; one more
         entry indexes N as :meth:`select` does: ``gs[0, :100]``, ``gs[:, mask]``,
         ``gs[..., idx]`` (``...`` stands for every batch axis). An int on N would drop
-        the Gaussian axis and raises ``IndexError`` (use ``i:i + 1``).
+        the Gaussian axis and raises ``IndexError`` (use ``i:i + 1``). NumPy integer and
+        bool arrays (and scalars) index as the same torch tensors would (they are moved
+        to the set's device); any other index on N is a ``TypeError`` naming the accepted
+        ones.
         """
         key = key if isinstance(key, tuple) else (key,)
+        key = tuple(_numpy_index(k, self.device) for k in key)
         batch_axes = len(self.batch_shape)
         if any(k is Ellipsis for k in key):
             if len(key) != 2 or key[0] is not Ellipsis:
@@ -541,6 +554,8 @@ class GaussianSet(_serialization.DictForm):
                 f"GaussianSet index: an int on the Gaussian axis N would drop it; use a slice "
                 f"({n_key}:{n_key} + 1) or a sequence of indices"
             )
+        if n_key is not None:
+            _check_n_index(n_key)
         out = self if n_key is None else self.select(n_key)
         if batch_key:
             out = out.map(lambda _, t: t[batch_key])
@@ -588,15 +603,24 @@ class GaussianSet(_serialization.DictForm):
 
     @typechecked
     def select(
-        self, index: slice | Sequence[int] | Int[Tensor, "*index_shape"] | Bool[Tensor, " N"]
+        self,
+        index: slice
+        | Sequence[int]
+        | Int[Tensor, "*index_shape"]
+        | Bool[Tensor, " N"]
+        | Integer[np.ndarray, "*index_shape"]
+        | Bool[np.ndarray, " N"],
     ) -> GaussianSet:
         """Gaussians picked along N.
 
         ``index`` may be a slice, a sequence of ints, a 1-D integer tensor (shared by the
         whole batch; negative values count from the end), a 1-D bool mask of length N,
         or an integer tensor of shape ``(*batch, K)`` picking K Gaussians per batch item.
+        NumPy integer / bool arrays are taken as those tensors.
         """
         n = self.num_gaussians
+        if isinstance(index, np.ndarray):
+            index = _numpy_index(index, self.device)
         if isinstance(index, slice):
             index = torch.arange(n, device=self.device)[index]
         elif not isinstance(index, Tensor):
@@ -712,6 +736,38 @@ class GaussianSet(_serialization.DictForm):
             )
         )
         return self
+
+
+_N_INDEX_TYPES = "a slice, a sequence of ints, or an integer or bool torch.Tensor / numpy.ndarray"
+
+
+def _numpy_index(key: Any, device: torch.device) -> Any:
+    """A NumPy integer / bool index (array or scalar) as the tensor torch would index with,
+    on ``device``; any other ``key`` unchanged."""
+    if not isinstance(key, np.ndarray | np.generic) or key.dtype.kind not in "iub":
+        return key
+    if key.dtype.kind == "u":  # no unsigned index tensors in torch (uint8 would be a mask)
+        key = np.asarray(key, dtype=np.int64)
+    return torch.as_tensor(key, device=device)
+
+
+def _check_n_index(key: Any) -> None:
+    """``TypeError`` (one line) unless ``key`` is an index :meth:`GaussianSet.select` takes."""
+    if isinstance(key, slice):
+        return
+    if isinstance(key, Tensor):
+        if key.dtype == torch.bool or not (key.is_floating_point() or key.is_complex()):
+            return
+        got = f"a {key.dtype} tensor"
+    elif isinstance(key, np.ndarray | np.generic):
+        got = f"a numpy {type(key).__name__} of dtype {key.dtype}"
+    elif isinstance(key, Sequence) and not isinstance(key, str | bytes):
+        if all(isinstance(i, int) and not isinstance(i, bool) for i in key):
+            return
+        got = "a sequence that holds other values than ints"
+    else:
+        got = type(key).__name__
+    raise TypeError(f"GaussianSet index: the Gaussian axis N takes {_N_INDEX_TYPES}; got {got}")
 
 
 def _autocast_features(name: str, value: Tensor, means: Tensor) -> bool:

@@ -454,7 +454,7 @@ print(json.dumps(results))
 @pytest.mark.slow
 def test_a_hostile_file_cannot_make_the_loader_allocate_much(tmp_path: Path) -> None:
     """Issue 38 (3): 10-40-byte files made load_pickle try to allocate gigabytes. Each is
-    now refused (or, the memo index, harmless) with memory growth under 10x the file size
+    now refused (or, the memo index without numba, harmless) with memory growth under 10x the file size
     plus 1 MiB; the check runs in a subprocess under a 4 GiB address-space limit."""
     import json
     import subprocess
@@ -469,11 +469,15 @@ def test_a_hostile_file_cannot_make_the_loader_allocate_much(tmp_path: Path) -> 
     )
     assert done.returncode == 0, done.stderr[-2000:]
     results = json.loads(done.stdout.strip().splitlines()[-1])
-    assert results["memo"][0] == "loaded None"
+    # the compiled scan refuses the memo index; the pure-Python unpickler's memo is a dict
+    assert results["memo"][0] == "loaded None" or "memo index far beyond" in results["memo"][0]
     for name in ("bytes", "bytearray", "newobj"):
         assert results[name][0].startswith("refused: ") and "size argument" in results[name][0]
-    for name in ("list", "set"):
-        assert results[name][0].startswith("refused: ") and "items: at most" in results[name][0]
-    assert "declares 72,057,594,037,927,936 bytes" in results["binbytes8"][0]
+    assert "list() of 1,000,000,000 items" in results["list"][0]
+    assert "set() of 20,000,000 items" in results["set"][0]
+    binbytes8 = results["binbytes8"][0]
+    assert (
+        "declares 72,057,594,037,927,936 bytes" in binbytes8 or "longer than the rest" in binbytes8
+    )
     for name, (_, peak, size) in results.items():
         assert peak < 10 * size + (1 << 20), (name, peak)

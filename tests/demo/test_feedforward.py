@@ -47,6 +47,7 @@ from dego.demo.feedforward.training import (
     median_frequency_weights,
     warm_up,
 )
+from tests.helpers.feedforward import render_tiny
 
 TINY = DataConfig(train_scenes=2, heldout_scenes=1, image_size=(16, 48))
 SMALL_NET = TrainConfig(steps=2, warmup_steps=1, width=4, hidden_dim=8, head_hidden=8, latent_dim=4)
@@ -166,6 +167,33 @@ def test_a_bad_cache_file_is_rendered_again_with_a_warning(tmp_path: Path, damag
         again = load_scenes(seeds[:1], TINY, tmp_path)[0]
     assert torch.equal(again.depth, first.depth) and again.seed == seeds[0]
     load_scenes(seeds[:1], TINY, tmp_path)  # rewritten: no warning now (filterwarnings=error)
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("seed", "two values"),
+        ("seed", np.inf),
+        ("seed", np.nan),
+        ("reference", "two values"),
+        ("reference", np.inf),
+    ],
+)
+def test_a_cached_scene_with_a_malformed_scalar_is_rendered_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str, value: object
+) -> None:
+    """A ``seed`` or ``reference`` of shape (2,), or a float such as inf, is an unusable
+    cached scene (a warning, rendered again), not a TypeError / OverflowError traceback."""
+    rendered = render_tiny(monkeypatch)
+    load_scenes([7], TINY, tmp_path)
+    path = tmp_path / f"scenes-{TINY.digest()}" / "scene-7.npz"
+    arrays = dict(np.load(path))
+    arrays[name] = np.array([7, 7]) if value == "two values" else np.array(value)
+    np.savez_compressed(path, **arrays)
+    with pytest.warns(UserWarning, match=f"unusable cached scene \\({name}: expected one integer"):
+        record = load_scenes([7], TINY, tmp_path)[0]
+    assert record.seed == 7 and rendered == [7, 7]
+    assert load_scenes([7], TINY, tmp_path)[0].seed == 7 and rendered == [7, 7]  # rewritten
 
 
 def test_a_changed_setting_uses_another_folder(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ import math
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -16,7 +17,7 @@ import torch
 
 import dego.demo.feedforward.command as command
 from dego.cli import main
-from dego.demo.feedforward import FEEDFORWARD_VARIANTS, SCORES
+from dego.demo.feedforward import FEEDFORWARD_VARIANTS, SCORES, load_scenes
 from dego.demo.feedforward.study import (
     COMPARISONS,
     PRESETS,
@@ -26,6 +27,8 @@ from dego.demo.feedforward.study import (
     won_back,
 )
 from dego.demo.stats import StudyRun
+from tests.helpers.cli_faults import FullDisk, ReadOnly
+from tests.helpers.feedforward import render_tiny
 
 
 @pytest.fixture
@@ -95,6 +98,137 @@ def test_an_unwritable_cache_or_out_is_a_usage_error(
     assert exit_info.value.code == 2
     assert f"error: {flag}:" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+# -- file faults: outputs checked first, the cache's failures survived, the end all or nothing
+
+
+SCENES = [11, 12, 13]
+"""The scenes the stand-in study loads (rendered as tiny records)."""
+
+QUICK = ["train", "--quick", "--variants", "static,rigid"]
+
+
+def _stand_in_study(
+    monkeypatch: pytest.MonkeyPatch, during: Callable[[], object] | None = None
+) -> list[int]:
+    """``dego train``'s work replaced by: load :data:`SCENES` through the cache (rendered
+    as tiny records), call ``during()``, return one seed's made-up scores. Returns the seeds
+    rendered."""
+    rendered = render_tiny(monkeypatch)
+
+    def study(config: FeedForwardStudyConfig, *, cache: Path | None, **kwargs: object) -> object:
+        load_scenes(SCENES, config.data, cache)
+        if during is not None:
+            during()
+        return _runs({variant: [1.0] for variant in config.variants})
+
+    monkeypatch.setattr(command, "run_feedforward_study", study)
+    return rendered
+
+
+def _previous_outputs(out: Path) -> dict[str, bytes]:
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("train.md", "train.json"):
+        (out / name).write_text(f"previous {name}\n")
+    return _contents(out)
+
+
+def _contents(folder: Path) -> dict[str, bytes]:
+    return {path.name: path.read_bytes() for path in folder.iterdir() if path.is_file()}
+
+
+@pytest.mark.parametrize("taken", ["heldout_rigid.png", "train.json"])
+def test_an_output_name_taken_by_a_folder_is_a_usage_error_before_any_work(
+    taken: str, tmp_path: Path, no_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Was: the run went to the end, then train.md (and train.json) were replaced and the
+    rename onto heldout_rigid.png failed with a traceback: half-new outputs."""
+    out = tmp_path / "out"
+    before = _previous_outputs(out)
+    (out / taken).unlink(missing_ok=True)
+    (out / taken).mkdir()
+    before.pop(taken, None)
+    with pytest.raises(SystemExit) as exit_info:
+        main([*QUICK, "--cache", str(tmp_path / "cache"), "--out", str(out)])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    line = err.strip().splitlines()[-1]
+    assert line == f"dego train: error: --out: {out / taken} is a directory, expected a file name"
+    assert "Traceback" not in err and _contents(out) == before
+    if taken.endswith(".png"):  # without pictures that name is no output: the work starts
+        with pytest.raises(AssertionError, match="the study started"):
+            main([*QUICK, "--no-pictures", "--no-cache", "--out", str(out)])
+
+
+@pytest.mark.parametrize(
+    "fault", ["full disk", "folder is a file", "folder is read-only", "scene is a folder"]
+)
+def test_a_cache_that_cannot_be_written_is_a_warning_and_the_run_goes_on(
+    fault: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Was: an OSError traceback, the run lost."""
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    folder = cache / f"scenes-{PRESETS['quick'].data.digest()}"
+    rendered = _stand_in_study(monkeypatch)
+    if fault == "full disk":
+        FullDisk(monkeypatch, cache.resolve(), fail_at=1)  # the first scene written
+    elif fault == "folder is a file":
+        cache.mkdir()
+        folder.write_text("in the way\n")
+    elif fault == "folder is read-only":
+        folder.mkdir(parents=True)
+        ReadOnly(monkeypatch, folder)
+    else:
+        (folder / f"scene-{SCENES[0]}.npz").mkdir(parents=True)
+    with pytest.warns(UserWarning) as warned:
+        code = main([*QUICK, "--no-pictures", "--cache", str(cache), "--out", str(out)])
+    assert code == 0
+    messages = [str(w.message) for w in warned]
+    cannot = [m for m in messages if "cannot cache the scene" in m]
+    assert len(cannot) == 1 and cannot[0].endswith("; going on without caching"), messages
+    assert cannot[0].startswith(f"{folder / f'scene-{SCENES[0]}.npz'}: ")
+    reason = {
+        "full disk": "No space left on device",
+        "folder is a file": "File exists",
+        "folder is read-only": "Permission denied",
+        "scene is a folder": "Is a directory",
+    }[fault]
+    assert f"({reason}" in cannot[0]
+    if fault == "scene is a folder":
+        assert any("unusable cached scene" in m for m in messages)
+    assert rendered == SCENES  # every scene, each once; nothing cached after the failure
+    if folder.is_dir():
+        assert [p.name for p in folder.iterdir() if p.is_file()] == []  # no temporary file
+    assert json.loads((out / "train.json").read_text())["settings"]["variants"] == [
+        "static",
+        "rigid",
+    ]
+    assert "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fault", ["full disk", "made read-only during the run"])
+def test_outputs_that_cannot_be_written_are_one_error_line_and_the_old_files_stay(
+    fault: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Was: an OSError traceback (exit 1)."""
+    out = tmp_path / "out"
+    before = _previous_outputs(out)
+    if fault == "full disk":
+        _stand_in_study(monkeypatch)
+        FullDisk(monkeypatch, out.resolve())  # the second file written: train.json
+        reason = "No space left on device"
+    else:
+        _stand_in_study(monkeypatch, during=lambda: ReadOnly(monkeypatch, out))
+        reason = "Permission denied"
+    code = main([*QUICK, "--no-pictures", "--no-cache", "--out", str(out)])
+    assert code == 1
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: cannot write {out}/train."), err
+    assert f": {reason}; the previous files in {out} are as they were" in lines[0]
+    monkeypatch.undo()
+    assert _contents(out) == before and sorted(p.name for p in out.iterdir()) == sorted(before)
 
 
 def test_presets_and_flags_make_the_study_asked_for() -> None:

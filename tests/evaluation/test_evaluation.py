@@ -272,6 +272,26 @@ def test_missing_prediction_is_an_up_front_error(
     assert "--missing" in err and "Traceback" not in err and err.count("\n") == 1
 
 
+def test_two_prediction_files_for_one_sample_are_a_setup_error(
+    tree: dict, pred_copy: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A ``<token>.npz`` beside a ``<token>.npy``: one of them used to be read silently."""
+    npz, npy = pred_copy / "tok-a1.npz", pred_copy / "tok-a1.npy"
+    np.save(npy, tree["arrays"]["tok-a1"][0])
+    with pytest.raises(EvaluationSetupError) as caught:
+        dego.evaluate(tree["gt"], pred_copy, rayiou=False)
+    message = str(caught.value)
+    assert "'tok-a1'" in message and str(npz) in message and str(npy) in message
+    with pytest.raises(EvaluationSetupError, match=r"tok-a1\.npz and .*tok-a1\.npy"):
+        dego.evaluation.find_prediction(pred_copy, SCENE_OF["tok-a1"], "tok-a1")
+    args = ["--gt", str(tree["gt"]), "--pred", str(pred_copy), "--no-rayiou"]
+    code, out, err = run_cli(args, capsys)
+    assert code == 2 and out == ""
+    assert err.startswith("error: --pred: sample 'tok-a1' has 2 prediction files")
+    assert str(npz) in err and str(npy) in err
+    assert "Traceback" not in err and err.count("\n") == 1
+
+
 def test_missing_free_and_skip(
     tree: dict, pred_copy: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -1,5 +1,6 @@
 """Helpers of tests/test_cli_faults.py, also used by
 
+- tests/demo/test_train_command.py
 - tests/evaluation/test_evaluation.py
 - tests/viz/test_rerun_commands.py
 - tests/test_cli_threads.py
@@ -68,3 +69,42 @@ def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
     assert lines[0].startswith(f"usage: dego {argv[0]} ")
     assert lines[-1].startswith(f"dego {argv[0]}: error: ")
     return lines[-1]
+
+
+class ReadOnly:
+    """Makes ``folder`` read-only for this process, as ``chmod a-w`` does for anyone but
+    root (whom the tests may run as): creating, opening for writing, replacing, linking or
+    making anything in it or below it fails with EACCES (``os.open``, ``os.replace``,
+    ``os.link``, ``os.mkdir``)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, folder: Path) -> None:
+        self.folder = Path(folder).resolve()
+        real_open, real_replace, real_link, real_mkdir = os.open, os.replace, os.link, os.mkdir
+        writing = os.O_WRONLY | os.O_RDWR | os.O_CREAT
+
+        def open_(path, flags, *args, **kwargs):  # type: ignore[no-untyped-def]
+            if flags & writing:
+                self._check(path)
+            return real_open(path, flags, *args, **kwargs)
+
+        def replace(src, dst, *args, **kwargs):  # type: ignore[no-untyped-def]
+            self._check(src, dst)
+            return real_replace(src, dst, *args, **kwargs)
+
+        def link(src, dst, *args, **kwargs):  # type: ignore[no-untyped-def]
+            self._check(dst)
+            return real_link(src, dst, *args, **kwargs)
+
+        def mkdir(path, *args, **kwargs):  # type: ignore[no-untyped-def]
+            self._check(path)
+            return real_mkdir(path, *args, **kwargs)
+
+        monkeypatch.setattr(os, "open", open_)
+        monkeypatch.setattr(os, "replace", replace)
+        monkeypatch.setattr(os, "link", link)
+        monkeypatch.setattr(os, "mkdir", mkdir)
+
+    def _check(self, *paths: object) -> None:
+        for path in paths:
+            if self.folder in Path(os.fspath(path)).resolve().parents:  # type: ignore[arg-type]
+                raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), os.fspath(path))  # type: ignore[arg-type]

@@ -96,6 +96,53 @@ def test_eval_records_ground_truth_and_prediction(
         assert token in column(data, "sample", "TextDocument:text")[i][0]
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_eval_rerun_on_a_full_disk_is_one_error_line_after_the_scores(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    tree = make_tree(tmp_path)
+    path = tmp_path / "rec" / "eval.rrd"
+    full = tmp_path / "rec.full.tmp"
+    full.symlink_to("/dev/full")  # every write fails with ENOSPC
+    monkeypatch.setattr("dego.viz.rerun.temporary_name", lambda target: full)
+    argv = ["eval", "--gt", str(tree["gt"]), "--pred", str(tree["pred"]), "--no-rayiou"]
+    assert main([*argv, "--quiet", "--rerun", str(path), "--limit", "2"]) == 1
+    captured = capsys.readouterr()
+    assert "mIoU" in captured.out  # scored first
+    errors = [line for line in captured.err.splitlines() if line.startswith("error:")]
+    assert errors == [errors[0]] and f"cannot write the recording {path}: " in errors[0]
+    assert "Traceback" not in captured.err
+    assert not path.exists() and not full.exists() and not path.parent.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_demo_rerun_on_a_full_disk_is_one_error_line_and_the_results_are_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "rec" / "demo.rrd"
+    full = tmp_path / "rec.full.tmp"
+    full.symlink_to("/dev/full")  # every write fails with ENOSPC
+    monkeypatch.setattr("dego.viz.rerun.temporary_name", lambda target: full)
+    argv = ["demo", "--frames", "2", "--iterations", "1", "--gaussians", "60", "--no-pictures"]
+    assert main([*argv, "--out", str(tmp_path / "out"), "--rerun", str(path)]) == 1
+    captured = capsys.readouterr()
+    errors = [line for line in captured.err.splitlines() if line.startswith("error:")]
+    assert errors == [errors[0]] and f"cannot write the recording {path}: " in errors[0]
+    assert "Traceback" not in captured.err
+    assert (tmp_path / "out" / "results.json").exists()  # the run is not lost
+    assert not path.exists() and not full.exists()
+
+
+def test_view_of_a_directory_says_it_is_one_and_what_it_expects(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    line = usage_error(["view", str(tmp_path)], capsys)
+    assert f"{tmp_path} is a directory" in line and "FILE.rrd" in line, line
+    assert "no such file" not in line
+
+
 def test_view_checks_the_file_and_starts_rerun(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

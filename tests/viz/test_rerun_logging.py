@@ -4,6 +4,10 @@ rerun's own reader (its catalog / dataframe API) and check entities, times and v
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -253,6 +257,83 @@ def test_recording_file_unwritable_is_refused_before_recording(tmp_path: Path) -
         pytest.fail("the block must not run")
     with pytest.raises(IsADirectoryError), dr.recording_file(tmp_path):
         pytest.fail("the block must not run")
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux)")
+def test_recording_file_on_a_full_disk_is_one_oserror_naming_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The temporary file is a link to /dev/full, where every write fails with ENOSPC:
+    rerun's own error (a RuntimeError) becomes one OSError naming the recording."""
+    path = tmp_path / "a.rrd"
+    path.write_bytes(b"previous")
+    tmp = tmp_path / ".a.rrd.full.tmp"
+    tmp.symlink_to("/dev/full")
+    monkeypatch.setattr(dr, "temporary_name", lambda target: tmp)
+    with pytest.raises(OSError) as caught, dr.recording_file(path):
+        pytest.fail("the block must not run")
+    message = str(caught.value)
+    assert message.startswith(f"cannot write the recording {path}: ")
+    assert "No space left on device" in message and "\n" not in message
+    assert path.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.rrd"]
+
+
+_FAULTY_DISK = """
+import os, resource, signal, sys
+from pathlib import Path
+import torch
+from dego import VoxelGrid
+from dego.viz import rerun as dr
+
+mode, folder = sys.argv[1], Path(sys.argv[2])
+target, tmp = folder / "rec.rrd", folder / ".rec.rrd.faulty.tmp"
+dr.temporary_name = lambda path: tmp
+dr.FLUSH_TIMEOUT_S, dr._CLOSE_GRACE_S = 1.0, 1.0
+if mode == "stalled":  # a file that takes nothing more once its 64 kB buffer is full
+    os.mkfifo(tmp)
+    reader = os.open(tmp, os.O_RDONLY | os.O_NONBLOCK)  # open, never read
+else:  # a disk that fills up: every write past 64 kB fails
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64_000, resource.RLIM_INFINITY))
+grid = VoxelGrid(lower=(0.0, 0.0, 0.0), upper=(64.0, 64.0, 8.0), voxel_size=1.0)
+labels = torch.randint(0, 17, grid.shape, generator=torch.Generator().manual_seed(0))
+try:
+    with dr.recording_file(target) as rec:
+        for frame in range(4):
+            dr.log_occupancy("world/occ", labels, grid, frame=frame, recording=rec)
+except OSError as error:
+    print(f"OSError: {error}")
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs POSIX fifos and rlimits")
+@pytest.mark.parametrize("mode", ["full", "stalled"])
+def test_recording_file_on_a_failing_disk_ends_with_one_oserror_and_no_temporary(
+    tmp_path: Path, mode: str
+) -> None:
+    """A disk that fills up while recording, and one that stops taking data (rerun's
+    flush used to wait forever, then its exit handler did): the block ends within
+    FLUSH_TIMEOUT_S with one OSError naming the file, the temporary file is removed, and
+    the process still exits. (A disk that fills up while rerun flushes can leave rerun's
+    writer as stuck as a stalled one: either reason is right for "full".)"""
+    start = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, "-c", _FAULTY_DISK, mode, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert time.monotonic() - start < 45
+    lines = result.stdout.splitlines()
+    assert len(lines) == 1, result.stdout
+    assert lines[0].startswith(f"OSError: cannot write the recording {tmp_path / 'rec.rrd'}: ")
+    assert "did not take it within 1 s" in lines[0] or "is the disk full?" in lines[0]
+    if mode == "stalled":
+        assert "did not take it within 1 s" in lines[0]
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_bad_input_is_refused_like_the_rest_of_dego(tmp_path: Path) -> None:

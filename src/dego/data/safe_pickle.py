@@ -1,39 +1,50 @@
 """A restricted unpickler for data files (mmdet3d infos): plain containers and numpy only.
 
-:func:`load_pickle` reads a pickle with an unpickler whose ``find_class`` resolves only
-an allow-list of globals: the builtin containers and values (``dict``, ``list``,
-``tuple``, ``set``, ``frozenset``, ``str``, ``bytes``, ``bytearray``, ``int``,
-``float``, ``complex``, ``bool``, ``slice``, ``range``), ``collections.OrderedDict`` and
-``collections.defaultdict``, ``_codecs.encode`` (latin-1 only: how protocol 2 stores
-bytes) and what numpy's own pickles name (``_reconstruct``, ``ndarray``, ``dtype``,
-``scalar``, ``_frombuffer``, under ``numpy.core`` of numpy 1.x or ``numpy._core`` of
-numpy 2.x). Every other global (``os.system``, ``builtins.eval``, any class) and every
-persistent id raises :class:`UnsafePickleError` before anything is called, so nothing in
-the file can run code. Objects inside object arrays go through the same check.
+:func:`load_pickle` reads a pickle whose globals resolve only through an allow-list: the
+builtin containers and values (``dict``, ``list``, ``tuple``, ``set``, ``frozenset``,
+``str``, ``bytes``, ``bytearray``, ``int``, ``float``, ``complex``, ``bool``, ``slice``,
+``range``), ``collections.OrderedDict`` and ``collections.defaultdict``,
+``_codecs.encode`` (latin-1 only: how protocol 2 stores bytes) and what numpy's own
+pickles name (``_reconstruct``, ``ndarray``, ``dtype``, ``scalar``, ``_frombuffer``,
+under ``numpy.core`` of numpy 1.x or ``numpy._core`` of numpy 2.x). Every other global
+(``os.system``, ``builtins.eval``, any class) and every persistent id raises
+:class:`UnsafePickleError` before anything is called, so nothing in the file can run
+code. Objects inside object arrays go through the same check.
+
+**What the file can make the loader allocate is bounded by design, not opcode by
+opcode.** A name the allow-list admits resolves to a checked constructor, never to the
+builtin itself, so every way a pickle can call it (``REDUCE``, ``NEWOBJ``,
+``NEWOBJ_EX``, protocol 0's ``INST``, protocol 1's ``OBJ``) goes through the same check:
+no size arguments (``bytes(2**36)``), no ``str`` or ``bytes`` of a container, sized
+arguments only (no iterators), and one running budget for everything the constructors
+and numpy's array states build, :data:`BUDGET_PER_BYTE` bytes per byte of the file plus
+:data:`BUDGET_ALLOWANCE` (shared references cannot multiply it: ``list()`` of one
+memoised ``range`` a thousand times draws on the same budget). The rest of what a load
+builds is made by opcodes, one object per opcode (as ``pickle.load`` does). Reads past
+the end of the file and memo indices far beyond the entries made are refused before
+they are attempted (:mod:`dego.data._pickle_scan`).
 
 numpy's pickled state is not trusted either: ``numpy.ndarray`` is never callable from
 the file (``ndarray(shape, object, buffer)`` would read raw memory as pointers), and
 every dtype is rebuilt through numpy's validating constructor before an array or
 scalar uses it (a pickled dtype state may carry field offsets past its item size).
 
-Nor are the sizes a file declares: what a few bytes can make the loader allocate is
-bounded by the file's size. The unpickler is Python's pure-Python one, whose memo is a
-dict (the C unpickler grows an array to the largest memo index: ``LONG_BINPUT 2**31``
-in 10 bytes asked for 16 GB); a read past the end of the file (a ``BINBYTES8`` or frame
-declaring more than the file holds) is refused before it is attempted; the allowed
-constructors refuse a size argument (``bytes(2**36)``, ``bytearray(2**32)``) and an
-iterable longer than :func:`item_limit` (``list(range(10**9))``), whether the file calls
-them (``REDUCE``) or their ``__new__`` (``NEWOBJ``); numpy arrays declared
-larger than the file holds fail numpy's own size check.
+With numba installed (the ``eval`` extra) the file is first scanned by a compiled pass
+and then read by Python's C unpickler; without it, by the pure-Python unpickler (whose
+memo is a dict and whose reads are checked one by one), several times slower.
 """
 
 from __future__ import annotations
 
 import _compat_pickle
 import collections
+import gc
+import io
+import math
 import os
 import pickle
 import struct
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar, cast
@@ -42,6 +53,7 @@ import numpy as np
 
 from dego._npz import open_regular_file
 from dego._typing import typechecked
+from dego.data import _pickle_scan
 
 PathLike = str | os.PathLike[str]
 
@@ -51,12 +63,26 @@ _ALLOWED_MESSAGE = (
     "only plain containers (dict, list, tuple, set), numbers, strings and numpy arrays are allowed"
 )
 
+BUDGET_PER_BYTE = 8
+"""Bytes the allowed constructors and numpy's array states may build, all together, per
+byte of the file (a real infos file uses about two: protocol 2 stores each array's data
+twice over, as a string and as the array)."""
+BUDGET_ALLOWANCE = 16 << 20
+"""Bytes allowed on top of :data:`BUDGET_PER_BYTE` per byte, whatever the file's size."""
+
+
+def budget(file_size: int) -> int:
+    """The bytes the allowed constructors may build, together, from a file of
+    ``file_size`` bytes."""
+    return BUDGET_PER_BYTE * file_size + BUDGET_ALLOWANCE
+
 
 class UnsafePickleError(pickle.UnpicklingError, ValueError):
-    """A pickle names a global or persistent id outside the allow-list of :func:`load_pickle`.
+    """A pickle names a global or persistent id outside the allow-list of :func:`load_pickle`,
+    or asks an allowed constructor for more than the file can justify.
 
     Subclasses both ``pickle.UnpicklingError`` and ``ValueError``; the message names the
-    file and the refused global as ``module.name``.
+    file and the refused global as ``module.name`` (or the refused size).
     """
 
 
@@ -68,8 +94,198 @@ except ImportError:  # pragma: no cover - numpy 1.x
     from numpy.core import numeric as _numeric  # type: ignore[no-redef]
 
 
+# -- the running budget of one load ------------------------------------------------------
+
+_LOAD = threading.local()
+"""The load in progress on this thread: its budget and its dtype checks."""
+
+
+class _Budget:
+    def __init__(self, size: int) -> None:
+        self.left = budget(size)
+        self.size = size
+
+    def charge(self, nbytes: int, what: str) -> None:
+        if nbytes > self.left:
+            raise UnsafePickleError(
+                f"refused {what}: {nbytes:,} bytes where {max(self.left, 0):,} of the "
+                f"{budget(self.size):,} a {self.size:,}-byte file may build remain"
+            )
+        self.left -= nbytes
+
+
+def _charge(nbytes: int, what: str, count: int) -> None:
+    """Charge ``nbytes`` to this thread's load; ``what.format(count)`` names it if refused."""
+    current: _Budget | None = getattr(_LOAD, "budget", None)
+    if current is not None:  # outside a load (a user's call later on): nothing to bound
+        if nbytes > current.left:
+            current.charge(nbytes, what.format(count))
+        current.left -= nbytes
+
+
+# -- the checked constructors ------------------------------------------------------------
+
+_SIZED = (list, tuple, set, frozenset, dict, str, bytes, bytearray, range)
+_HASHED = (set, frozenset, dict, collections.OrderedDict, collections.defaultdict)
+
+
+def _item_bytes(kind: type) -> int:
+    """Bytes one item costs in a container of ``kind`` (pointers; hash tables more)."""
+    return 32 if issubclass(kind, _HASHED) else 8
+
+
+_MADE_PER_ITEM: dict[type, int] = {range: 32, str: 64}
+"""Bytes of the new object each item of these arguments makes when iterated (an int, a
+one-character string; an array's scalar or sub-array: 112)."""
+
+
+def _sized(kind: type, value: Any) -> int:
+    """``len(value)`` of a sized argument; anything else (an iterator, a number) refused."""
+    if isinstance(value, np.ndarray):
+        return int(value.size)
+    if not isinstance(value, _SIZED):
+        raise UnsafePickleError(
+            f"refused {kind.__name__}() of a {type(value).__name__}: only sized containers"
+        )
+    return len(value)
+
+
+class _Constructor(type):
+    """The type of the checked constructors: a pickle cannot change them (``BUILD`` on a
+    global sets attributes)."""
+
+    kind: type
+
+    def __setattr__(cls, name: str, value: Any) -> None:
+        raise UnsafePickleError(f"refused setting {name!r} on {cls.__name__}")
+
+    def __repr__(cls) -> str:
+        return f"<checked {cls.kind.__name__}>"
+
+
+class _Checked(metaclass=_Constructor):
+    """Stands for an allowed builtin: calling it (or its ``__new__``) checks the arguments,
+    charges the load's budget and returns the builtin's object, never an instance."""
+
+    kind: ClassVar[type] = object
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+        return cls.build(*args, **kwargs)
+
+    @classmethod
+    def build(cls, *args: Any, **kwargs: Any) -> Any:
+        raise NotImplementedError
+
+
+class _Container(_Checked):
+    """``list``, ``tuple``, ``set``, ``frozenset``, ``dict``, ``OrderedDict``: of at most
+    one sized argument (and, for the dicts, keywords)."""
+
+    @classmethod
+    def build(cls, *args: Any, **kwargs: Any) -> Any:
+        if len(args) > 1 or (kwargs and not issubclass(cls.kind, dict)):
+            raise UnsafePickleError(f"refused {cls.kind.__name__}() of {len(args)} arguments")
+        items = (_sized(cls.kind, args[0]) if args else 0) + len(kwargs)
+        # iterating a range, a string or an array makes a new object per item
+        made = (
+            0
+            if not args
+            else 112
+            if isinstance(args[0], np.ndarray)
+            else _MADE_PER_ITEM.get(type(args[0]), 0)
+        )
+        cost = items * (_item_bytes(cls.kind) + made)
+        _charge(cost, cls.kind.__name__ + "() of {:,} items", items)
+        nested = args and cls.kind in (tuple, frozenset)  # the scan counts the opcodes' nesting
+        if nested and any(type(item) in (tuple, frozenset) for item in args[0]):
+            raise UnsafePickleError(f"refused {cls.kind.__name__}() of nested tuples")
+        return cls.kind(*args, **kwargs)
+
+
+class _DefaultDict(_Checked):
+    kind = collections.defaultdict
+
+    @classmethod
+    def build(cls, factory: Any = None, *args: Any) -> Any:
+        if factory is not None and not (
+            isinstance(factory, _Constructor) and issubclass(factory, _Container)
+        ):
+            raise UnsafePickleError("defaultdict's factory may only be an allowed container")
+        real = factory.kind if factory is not None else None
+        items = _sized(dict, args[0]) if args else 0
+        if len(args) > 1:
+            raise UnsafePickleError(f"refused defaultdict() of {1 + len(args)} arguments")
+        _charge(items * _item_bytes(dict), "defaultdict() of {:,} items", items)
+        return collections.defaultdict(real, *args)
+
+
+_ENCODINGS = frozenset({"latin1", "latin-1", "latin_1", "utf-8", "utf8", "ascii"})
+
+
+class _Binary(_Checked):
+    """``bytes`` and ``bytearray``: of nothing, of bytes or a list of ints, or of a string
+    and an encoding; never of a size."""
+
+    @classmethod
+    def build(cls, *args: Any) -> Any:
+        name = cls.kind.__name__
+        if args and isinstance(args[0], int):
+            raise UnsafePickleError(
+                f"refused {name}({args[0]}): a size argument would allocate memory the "
+                "file does not hold"
+            )
+        if len(args) == 2 and isinstance(args[0], str) and args[1] in _ENCODINGS:
+            _charge(4 * len(args[0]), name + "() of {:,} characters", len(args[0]))
+            return cls.kind(args[0], args[1])
+        if len(args) > 1 or (args and not isinstance(args[0], bytes | bytearray | list | tuple)):
+            raise UnsafePickleError(f"refused {name}() of these arguments")
+        count = len(args[0]) if args else 0
+        _charge(count, name + "() of {:,} bytes", count)
+        return cls.kind(*args)
+
+
+class _Text(_Checked):
+    """``str``: of nothing or of a string (no ``str`` of a container: its repr could be
+    exponentially long over shared references, nor a decode with any codec)."""
+
+    kind = str
+
+    @classmethod
+    def build(cls, *args: Any) -> Any:
+        if len(args) > 1 or (args and not isinstance(args[0], str)):
+            raise UnsafePickleError("refused str() of anything but a string")
+        return str(*args)
+
+
+_NUMBERS = (int, float, complex, bool, str, np.generic)
+
+
+class _Value(_Checked):
+    """``int``, ``float``, ``complex``, ``bool``, ``slice``, ``range``: of numbers (or a
+    numeral) only."""
+
+    @classmethod
+    def build(cls, *args: Any) -> Any:
+        if len(args) > 3 or any(not isinstance(a, _NUMBERS) and a is not None for a in args):
+            raise UnsafePickleError(f"refused {cls.kind.__name__}() of these arguments")
+        return cls.kind(*args)
+
+
+def _checked(kind: type, base: type[_Checked]) -> type[_Checked]:
+    return cast(type[_Checked], _Constructor(f"Checked{kind.__name__}", (base,), {"kind": kind}))
+
+
+_BUILTINS: dict[str, type[_Checked]] = {
+    **{k.__name__: _checked(k, _Container) for k in (list, tuple, set, frozenset, dict)},
+    **{k.__name__: _checked(k, _Binary) for k in (bytes, bytearray)},
+    **{k.__name__: _checked(k, _Value) for k in (int, float, complex, bool, slice, range)},
+    "str": _Text,
+}
+
+
 class _CheckedArray(np.ndarray):
-    """What ``_reconstruct`` builds: its ``__setstate__`` rebuilds the dtype first.
+    """What ``_reconstruct`` builds: its ``__setstate__`` checks the dtype and charges the
+    load's budget before numpy fills it.
 
     :func:`load_pickle` turns every such array into a plain ``numpy.ndarray`` (a view).
     """
@@ -77,13 +293,29 @@ class _CheckedArray(np.ndarray):
     __slots__ = ()
 
     def __setstate__(self, state: Any) -> None:
-        if not isinstance(state, tuple) or len(state) not in (4, 5):
+        if type(state) is not tuple or len(state) not in (4, 5):
             raise ValueError("numpy.ndarray: malformed pickled array state")
-        if len(state) == 5:  # version, shape, dtype, is_fortran, data
-            state = (state[0], state[1], _checked_dtype(state[2]), state[3], state[4])
+        if len(state) == 5:
+            version, shape, dtype, fortran, data = state
         else:
-            state = (state[0], _checked_dtype(state[1]), state[2], state[3])
-        super().__setstate__(state)
+            version, (shape, dtype, fortran, data) = 0, state
+        if type(dtype) is not _PickledDtype:
+            raise ValueError(f"expected a numpy dtype, got {type(dtype).__name__}")
+        dtype = dtype.built
+        count = math.prod(shape) if type(shape) is tuple else -1
+        if type(count) is not int or count < 0 or (shape and min(shape) < 0):
+            raise ValueError("numpy.ndarray: malformed pickled shape")
+        _charge(8 * count if dtype.hasobject else count * dtype.itemsize, _ARRAY, count)
+        rebuilt = (
+            (version, shape, dtype, fortran, data)
+            if len(state) == 5
+            else (shape, dtype, fortran, data)
+        )
+        _ndarray_setstate(self, rebuilt)  # type: ignore[arg-type]
+
+
+_ARRAY = "an array of {:,} items"
+_ndarray_setstate = np.ndarray.__setstate__
 
 
 class _NdarrayMarker:
@@ -103,35 +335,95 @@ class _NdarrayMarker:
 _NDARRAY = _NdarrayMarker()
 
 
+class _PickledDtype:
+    """What the file's ``numpy.dtype(...)`` builds: a dtype made by numpy's constructors,
+    whose pickled state (``BUILD``) is turned into constructor arguments and checked
+    against the state numpy itself would pickle, never handed to numpy's
+    ``dtype.__setstate__`` (which trusts it: field offsets past the item size, or a
+    ``SystemError``). Arrays, scalars and :func:`load_pickle`'s result get the dtype."""
+
+    __slots__ = ("align", "built")
+
+    def __init__(self, built: np.dtype, align: bool) -> None:
+        self.built, self.align = built, align
+
+    def __setstate__(self, state: Any) -> None:
+        self.built = _dtype_from_state(self.built, state, self.align)
+
+    def __reduce__(self) -> Any:
+        raise TypeError("not picklable")
+
+
 def _checked_dtype(dtype: Any) -> np.dtype:
-    """The same dtype rebuilt by numpy's validating constructors (``ValueError`` if not)."""
-    if not isinstance(dtype, np.dtype):
+    """The dtype a file's dtype object stands for (``ValueError`` for anything else)."""
+    if type(dtype) is not _PickledDtype:
         raise ValueError(f"expected a numpy dtype, got {type(dtype).__name__}")
+    return dtype.built
+
+
+def _dtype_from_state(base: np.dtype, state: Any, align: bool) -> np.dtype:
+    """The dtype ``state`` (numpy's pickled dtype state) describes, built by numpy's
+    constructors from ``base`` (``ValueError`` if numpy would pickle it differently)."""
+    if type(state) is not tuple or len(state) not in (8, 9):
+        raise ValueError("numpy.dtype: malformed pickled state")
+    order, sub, names, fields = state[1:5]
     try:
-        if dtype.subdtype is not None:
-            base, shape = dtype.subdtype
-            rebuilt = np.dtype((_checked_dtype(base), shape))
-        elif dtype.names is not None:
-            fields = dtype.fields
-            assert fields is not None
-            entries = [fields[name] for name in dtype.names]
+        if sub is not None:
+            if type(sub) is not tuple or len(sub) != 2:
+                raise ValueError("malformed subarray")
+            built = np.dtype((_checked_dtype(sub[0]), sub[1]))
+        elif names is not None:
+            if (
+                type(names) is not tuple
+                or type(fields) is not dict
+                or not set(names) <= set(fields)
+            ):
+                raise ValueError("malformed fields")
+            entries = [fields[name] for name in names]
+            if any(type(entry) is not tuple or len(entry) not in (2, 3) for entry in entries):
+                raise ValueError("malformed fields")
             # numpy's stubs type a fields dict as a TypedDict of literal keys; this one is built
             spec: Any = {
-                "names": list(dtype.names),
+                "names": list(names),
                 "formats": [_checked_dtype(entry[0]) for entry in entries],
                 "offsets": [int(entry[1]) for entry in entries],
-                "itemsize": int(dtype.itemsize),
+                "itemsize": int(state[5]),
             }
             if any(len(entry) > 2 for entry in entries):
                 spec["titles"] = [entry[2] if len(entry) > 2 else None for entry in entries]
-            rebuilt = np.dtype(spec, align=bool(dtype.isalignedstruct))
+            aligned = align or (type(state[7]) is int and state[7] & _ALIGNED_STRUCT)
+            built = np.dtype(spec, align=bool(aligned))
+        elif len(state) == 9 and base.kind in "mM":  # datetime64, timedelta64: the unit
+            unit, count = state[8][1][:2]
+            built = np.dtype(f"{base.str[:2]}8[{int(count)}{unit.decode('ascii')}]")
         else:
-            rebuilt = np.dtype(dtype.str)
-    except (TypeError, ValueError, KeyError, OverflowError) as exc:
-        raise ValueError(f"malformed numpy dtype {dtype!r} ({exc})") from None
-    if rebuilt.itemsize != dtype.itemsize or rebuilt != dtype:
-        raise ValueError(f"malformed numpy dtype {dtype!r}")
-    return rebuilt
+            built = base
+        if order in ("<", ">") and built.byteorder != "|":
+            built = built.newbyteorder(order)
+        expected = built.__reduce__()[2]
+    except (TypeError, ValueError, KeyError, IndexError, OverflowError, AttributeError) as exc:
+        raise ValueError(f"malformed numpy dtype state ({exc})") from None
+    if _plain_state(state) != expected:
+        raise ValueError(f"malformed numpy dtype state: numpy pickles {built!r} differently")
+    return built
+
+
+_ALIGNED_STRUCT = 0x80
+"""numpy's ``NPY_ALIGNED_STRUCT`` flag in a pickled dtype state's flags."""
+
+
+def _plain_state(state: Any) -> Any:
+    """``state`` with every file dtype object as its dtype (to compare with numpy's)."""
+    if type(state) is _PickledDtype:
+        return state.built
+    if type(state) is tuple:
+        return tuple(_plain_state(item) for item in state)
+    if type(state) is dict:
+        return {key: _plain_state(value) for key, value in state.items()}
+    return state
+
+
+_EMPTY = (0,)
 
 
 def _reconstruct(subtype: Any, shape: Any, typecode: Any) -> np.ndarray:
@@ -139,10 +431,12 @@ def _reconstruct(subtype: Any, shape: Any, typecode: Any) -> np.ndarray:
         raise UnsafePickleError(
             f"numpy _reconstruct may only rebuild numpy.ndarray, got {type(subtype).__name__}"
         )
-    return cast(np.ndarray, _multiarray._reconstruct(_CheckedArray, (0,), b"b"))
+    return _multiarray._reconstruct(_CheckedArray, _EMPTY, b"b")  # type: ignore[return-value]
 
 
 def _scalar(dtype: Any, *data: Any) -> Any:
+    if data and isinstance(data[0], bytes | bytearray):
+        _charge(len(data[0]), "a numpy scalar of {:,} bytes", len(data[0]))
     return _multiarray.scalar(_checked_dtype(dtype), *data)
 
 
@@ -150,65 +444,90 @@ def _frombuffer(buffer: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
     if not isinstance(buffer, bytes | bytearray):
         raise ValueError("numpy _frombuffer: expected in-band bytes")
     # numpy's stubs leave out the private _frombuffer (what ndarray.__reduce__ pickles)
-    return _numeric._frombuffer(  # type: ignore[attr-defined]
+    array = _numeric._frombuffer(  # type: ignore[attr-defined]
         buffer, _checked_dtype(dtype), shape, order
     )
+    return cast(np.ndarray, array.view(_CheckedArray))  # a BUILD on it is checked too
 
 
-def _dtype(obj: Any, align: Any = False, copy: Any = False) -> np.dtype:
+def _dtype(obj: Any, align: Any = False, copy: Any = False) -> _PickledDtype:
     if not isinstance(obj, str):
         raise ValueError(f"numpy.dtype: expected a type string, got {type(obj).__name__}")
-    return np.dtype(obj, bool(align), bool(copy))
+    return _PickledDtype(np.dtype(obj, bool(align), True), bool(align))
 
 
 def _latin1_encode(text: Any, encoding: Any = "utf-8") -> bytes:
     # protocol 2 stores bytes as _codecs.encode(str, "latin1")
     if not isinstance(text, str) or encoding not in ("latin1", "latin-1", "latin_1"):
         raise UnsafePickleError("_codecs.encode is allowed only for latin-1 strings")
+    _charge(len(text), "_codecs.encode() of {:,} characters", len(text))
     return text.encode("latin-1")
 
 
-ITEMS_PER_BYTE = 16
-"""Items one allowed constructor may build per byte of the file (each item needs at least
-one byte of opcode, so this is generous)."""
-ITEM_ALLOWANCE = 65_536
-"""Items allowed on top of :data:`ITEMS_PER_BYTE` per byte, whatever the file's size."""
+_NUMPY = {
+    "_reconstruct": ("multiarray", _reconstruct),
+    "scalar": ("multiarray", _scalar),
+    "_frombuffer": ("numeric", _frombuffer),
+}
+
+_ALLOWED: dict[tuple[str, str], Any] = {
+    **{("builtins", name): checked for name, checked in _BUILTINS.items()},
+    ("collections", "OrderedDict"): _checked(collections.OrderedDict, _Container),
+    ("collections", "defaultdict"): _DefaultDict,
+    ("_codecs", "encode"): _latin1_encode,
+    ("numpy", "ndarray"): _NDARRAY,
+    ("numpy", "dtype"): _dtype,
+    **{
+        (f"numpy.{package}.{module}", name): function
+        for package in ("core", "_core")
+        for name, (module, function) in _NUMPY.items()
+    },
+}
 
 
-def item_limit(file_size: int) -> int:
-    """The most items one allowed constructor may build from a file of ``file_size`` bytes."""
-    return ITEMS_PER_BYTE * file_size + ITEM_ALLOWANCE
+def _allowed(path: Path, module: str, name: str) -> Any:
+    """What ``module.name`` resolves to (:class:`UnsafePickleError` if not allowed)."""
+    key = (module, name)
+    # Python 2 names, as protocols 0-2 write them (``__builtin__.set``, ``xrange``)
+    if key in _compat_pickle.NAME_MAPPING:
+        key = _compat_pickle.NAME_MAPPING[key]
+    elif module in _compat_pickle.IMPORT_MAPPING:
+        key = (_compat_pickle.IMPORT_MAPPING[module], name)
+    if key in _ALLOWED:
+        return _ALLOWED[key]
+    written = "" if key == (module, name) else f" (written as {module}.{name})"
+    raise UnsafePickleError(
+        f"{path}: refused the global {key[0]}.{key[1]}{written}: {_ALLOWED_MESSAGE}"
+    )
 
 
-_SIZED = frozenset({list, tuple, set, frozenset, dict, bytes, bytearray, str})
+def _refuse_persistent_id(path: Path, pid: Any) -> Any:
+    # the repr of a file's object could be exponentially long (shared references)
+    shown = repr(pid)[:80] if isinstance(pid, str | bytes | int) else type(pid).__name__
+    raise UnsafePickleError(f"{path}: refused the persistent id {shown}: {_ALLOWED_MESSAGE}")
 
 
-def _check_sizes(kind: Any, args: tuple[Any, ...], path: Path, limit: int) -> None:
-    """Before ``kind(*args)`` (``REDUCE``) or ``kind.__new__(kind, *args)`` (``NEWOBJ``) of
-    an allowed container: no size argument, no iterable longer than ``limit``."""
-    if kind not in _SIZED:
-        return
-    name = kind.__name__
-    if args and kind in (bytes, bytearray) and isinstance(args[0], int):
-        raise UnsafePickleError(
-            f"{path}: refused {name}({args[0]}): a size argument would allocate memory the "
-            "file does not hold"
-        )
-    for value in args:
-        sized = isinstance(value, range | str | bytes | bytearray | list | tuple | set | dict)
-        if sized and len(value) > limit:
-            raise UnsafePickleError(
-                f"{path}: refused {name}() of {len(value):,} items: at most {limit:,} for a "
-                "file of this size"
-            )
+# -- the two unpicklers ------------------------------------------------------------------
+
+
+class _FastUnpickler(pickle.Unpickler):  # the C one: run only on a scanned file
+    def __init__(self, file: Any, path: Path) -> None:
+        super().__init__(file)
+        self._path = path
+
+    def find_class(self, module: str, name: str) -> Any:
+        return _allowed(self._path, module, name)
+
+    def persistent_load(self, pid: Any) -> Any:
+        return _refuse_persistent_id(self._path, pid)
 
 
 class _BoundedFile:
-    """The file as the unpickler reads it: a read of more than the rest of the file is
-    refused before any buffer for it is allocated."""
+    """The file as the pure-Python unpickler reads it: a read of more than the rest of
+    the file is refused before any buffer for it is allocated."""
 
-    def __init__(self, stream: Any, path: Path, size: int) -> None:
-        self._stream, self._path, self._size = stream, path, size
+    def __init__(self, stream: Any, size: int) -> None:
+        self._stream, self._size = stream, size
 
     def read(self, n: int = -1) -> bytes:
         remaining = self._size - self._stream.tell()
@@ -224,90 +543,46 @@ class _BoundedFile:
     def readline(self) -> bytes:
         return cast(bytes, self._stream.readline(self._size - self._stream.tell()))
 
-
-_NUMPY = {
-    "_reconstruct": ("multiarray", _reconstruct),
-    "scalar": ("multiarray", _scalar),
-    "_frombuffer": ("numeric", _frombuffer),
-}
-
-_ALLOWED: dict[tuple[str, str], Any] = {
-    **{
-        ("builtins", kind.__name__): kind
-        for kind in (
-            dict,
-            list,
-            tuple,
-            set,
-            frozenset,
-            str,
-            bytes,
-            bytearray,
-            int,
-            float,
-            complex,
-            bool,
-            slice,
-            range,
-        )
-    },
-    ("collections", "OrderedDict"): collections.OrderedDict,
-    ("collections", "defaultdict"): collections.defaultdict,
-    ("_codecs", "encode"): _latin1_encode,
-    ("numpy", "ndarray"): _NDARRAY,
-    ("numpy", "dtype"): _dtype,
-    **{
-        (f"numpy.{package}.{module}", name): function
-        for package in ("core", "_core")
-        for name, (module, function) in _NUMPY.items()
-    },
-}
+    def tell(self) -> int:
+        return cast(int, self._stream.tell())
 
 
-class _RestrictedUnpickler(pickle._Unpickler):  # the pure-Python one: its memo is a dict
+class _PythonUnpickler(pickle._Unpickler):  # the pure-Python one: its memo is a dict
     def __init__(self, file: Any, path: Path, size: int) -> None:
-        super().__init__(_BoundedFile(file, path, size))
+        self._bounded = _BoundedFile(file, size)
+        super().__init__(self._bounded)
         self._path = path
-        self._limit = item_limit(size)
+        self._tuple_nodes: dict[int, tuple[Any, int]] = {}  # id -> (tuple, nodes)
 
     def find_class(self, module: str, name: str) -> Any:
-        key = (module, name)
-        # Python 2 names, as protocols 0-2 write them (``__builtin__.set``, ``xrange``)
-        if key in _compat_pickle.NAME_MAPPING:
-            key = _compat_pickle.NAME_MAPPING[key]
-        elif module in _compat_pickle.IMPORT_MAPPING:
-            key = (_compat_pickle.IMPORT_MAPPING[module], name)
-        if key in _ALLOWED:
-            return _ALLOWED[key]
-        written = "" if key == (module, name) else f" (written as {module}.{name})"
-        raise UnsafePickleError(
-            f"{self._path}: refused the global {key[0]}.{key[1]}{written}: {_ALLOWED_MESSAGE}"
-        )
-
-    # REDUCE, NEWOBJ and NEWOBJ_EX call what find_class allowed: check the sizes first
-    def _load_reduce(self) -> None:
-        _check_sizes(self.stack[-2], self.stack[-1], self._path, self._limit)  # type: ignore[attr-defined]
-        super().load_reduce()  # type: ignore[misc]
-
-    def _load_newobj(self) -> None:
-        _check_sizes(self.stack[-2], self.stack[-1], self._path, self._limit)  # type: ignore[attr-defined]
-        super().load_newobj()  # type: ignore[misc]
-
-    def _load_newobj_ex(self) -> None:
-        _check_sizes(self.stack[-3], self.stack[-2], self._path, self._limit)  # type: ignore[attr-defined]
-        super().load_newobj_ex()  # type: ignore[misc]
-
-    dispatch: ClassVar[dict[int, Callable[[Any], None]]] = {
-        **pickle._Unpickler.dispatch,
-        pickle.REDUCE[0]: _load_reduce,
-        pickle.NEWOBJ[0]: _load_newobj,
-        pickle.NEWOBJ_EX[0]: _load_newobj_ex,
-    }
+        return _allowed(self._path, module, name)
 
     def persistent_load(self, pid: Any) -> Any:
-        raise UnsafePickleError(
-            f"{self._path}: refused the persistent id {pid!r}: {_ALLOWED_MESSAGE}"
-        )
+        return _refuse_persistent_id(self._path, pid)
+
+    def _count_nodes(self) -> None:
+        """The tuple (or frozenset) just built: its nodes, counting shared ones as often as
+        they are referenced, bounded as the compiled scan bounds them."""
+        made = self.stack[-1]  # type: ignore[attr-defined]
+        nodes = 1
+        for item in made:
+            known = self._tuple_nodes.get(id(item))
+            nodes += known[1] if known is not None and known[0] is item else 1
+        read = self._bounded.tell()
+        bound = _pickle_scan.TUPLE_NODES_PER_BYTE * read + _pickle_scan.TUPLE_NODE_ALLOWANCE
+        if nodes > bound:
+            raise ValueError(_pickle_scan.REASONS[_pickle_scan.NESTING])
+        self._tuple_nodes[id(made)] = (made, nodes)
+
+    dispatch: ClassVar[dict[int, Callable[[Any], None]]] = dict(pickle._Unpickler.dispatch)
+    for _code in (pickle.TUPLE, pickle.TUPLE1, pickle.TUPLE2, pickle.TUPLE3, pickle.FROZENSET):
+
+        def _counted(self: Any, _load: Any = dispatch[_code[0]]) -> None:
+            _load(self)
+            self._count_nodes()
+
+        dispatch[_code[0]] = _counted
+    del _code, _counted
 
 
 _CORRUPT = (
@@ -316,8 +591,8 @@ _CORRUPT = (
     ValueError,
     TypeError,
     AttributeError,
-    IndexError,
-    KeyError,
+    LookupError,  # IndexError, KeyError, an unknown codec
+    BufferError,
     struct.error,
     OverflowError,
     RuntimeError,
@@ -326,6 +601,35 @@ _CORRUPT = (
     UnicodeError,
     ImportError,
 )
+
+ENGINES = ("auto", "c", "python")
+"""``c``: numba's scan, then the C unpickler; ``python``: the pure-Python unpickler;
+``auto``: ``c`` where numba is installed."""
+
+
+def _read(file: Path, stream: Any, engine: str) -> Any:
+    size = os.fstat(stream.fileno()).st_size
+    scan = _pickle_scan.compiled_scan() if engine in ("auto", "c") else None
+    if engine == "c" and scan is None:
+        raise RuntimeError("the c engine needs numba (pip install numba)")
+    _LOAD.budget = _Budget(size)
+    collecting = gc.isenabled()
+    gc.disable()  # millions of new containers, none garbage yet: no collection passes
+    try:
+        if scan is None:
+            return _plain(_PythonUnpickler(stream, file, size).load(), {})
+        data = stream.read()
+        if len(data) != size:
+            raise ValueError("the file changed while it was read")
+        reason, position = scan(np.frombuffer(data, dtype=np.uint8))
+        if reason != _pickle_scan.OK:
+            raise ValueError(f"{_pickle_scan.REASONS[int(reason)]} (at byte {int(position):,})")
+        # buffered: the C unpickler then reads ahead instead of calling read() per opcode
+        return _plain(_FastUnpickler(io.BufferedReader(io.BytesIO(data)), file).load(), {})
+    finally:
+        del _LOAD.budget
+        if collecting:
+            gc.enable()
 
 
 @typechecked
@@ -342,12 +646,15 @@ def load_pickle(path: PathLike) -> object:
         FileNotFoundError: naming ``path`` when it does not exist or is not a regular
             file (a FIFO, socket or device is refused without blocking).
         UnsafePickleError: (a ``pickle.UnpicklingError`` and a ``ValueError``) naming the
-            file and the refused global ``module.name`` (or persistent id); nothing from
-            the file has been called.
+            file and the refused global ``module.name`` (or persistent id, or the size an
+            allowed constructor was asked for); nothing from the file has been called.
         ValueError: naming the file when it is truncated, corrupt or holds malformed
             numpy state.
     """
-    file = Path(path)
+    return _load(Path(path), "auto")
+
+
+def _load(file: Path, engine: str) -> object:
     if not file.exists():
         raise FileNotFoundError(f"{file}: no such pickle file")
     if file.is_dir():
@@ -355,24 +662,39 @@ def load_pickle(path: PathLike) -> object:
     try:
         # A FIFO (or socket, device) is refused here rather than blocking in open().
         with open_regular_file(file, "a pickle file") as stream:
-            size = os.fstat(stream.fileno()).st_size
-            loaded = _RestrictedUnpickler(stream, file, size).load()
-        return _plain(loaded, {})
+            return _read(file, stream, engine)
     except UnsafePickleError as exc:
         if str(file) in str(exc):
             raise
         raise UnsafePickleError(f"{file}: {exc}") from None
     except _CORRUPT as exc:
+        # args[0], not str(exc): a KeyError's str is the repr of the file's key
+        detail = exc.args[0] if exc.args and isinstance(exc.args[0], str) else ""
         raise ValueError(
-            f"{file}: not a readable pickle of plain data ({type(exc).__name__}: {exc})"
+            f"{file}: not a readable pickle of plain data ({type(exc).__name__}: {detail[:300]})"
         ) from None
 
 
-_LEAVES = frozenset({str, int, float, bool, bytes, complex, type(None)})
+def _plain_keys(obj: dict[Any, Any], seen: dict[int, Any]) -> dict[Any, Any]:
+    """:func:`_plain` of a dict with keys that may change (tuples, frozensets)."""
+    items = [(_plain(k, seen), k, _plain(v, seen), v) for k, v in obj.items()]
+    if any(nk is not k for nk, k, _, _ in items):
+        obj.clear()
+        obj.update((nk, nv) for nk, _, nv, _ in items)
+    else:
+        for nk, _, nv, v in items:
+            if nv is not v:
+                obj[nk] = nv
+    return obj
+
+
+_NUMPY_SCALARS = {kind for kind in np.sctypeDict.values() if not issubclass(kind, np.void)}
+_LEAVES = frozenset({str, int, float, bool, bytes, complex, type(None), *_NUMPY_SCALARS})
 
 
 def _plain(obj: Any, seen: dict[int, Any]) -> Any:
-    """``obj`` with every checked array as a plain ndarray and every dtype rebuilt.
+    """``obj`` with every checked array as a plain ndarray, every dtype rebuilt and every
+    checked constructor as its builtin.
 
     Mutable containers are updated in place (shared references and cycles survive);
     tuples and frozensets are rebuilt only when an item changes.
@@ -383,7 +705,7 @@ def _plain(obj: Any, seen: dict[int, Any]) -> Any:
     key = id(obj)
     if key in seen:
         return seen[key]
-    if isinstance(obj, _CheckedArray):
+    if kind is _CheckedArray:
         out: Any = obj.view(np.ndarray)
         seen[key] = out
         if out.dtype.hasobject:
@@ -392,14 +714,7 @@ def _plain(obj: Any, seen: dict[int, Any]) -> Any:
                 if new is not item:
                     out.flat[index] = new
         return out
-    if isinstance(obj, np.ndarray):  # from _frombuffer: never object dtype
-        seen[key] = obj
-        return obj
-    if isinstance(obj, np.dtype):
-        out = _checked_dtype(obj)
-        seen[key] = out
-        return out
-    if isinstance(obj, list):
+    if kind is list:
         seen[key] = obj
         for index, item in enumerate(obj):
             if type(item) not in _LEAVES and (new := _plain(item, seen)) is not item:
@@ -407,26 +722,28 @@ def _plain(obj: Any, seen: dict[int, Any]) -> Any:
         return obj
     if isinstance(obj, dict):  # dict, OrderedDict, defaultdict
         seen[key] = obj
-        if all(type(k) in _LEAVES for k in obj):  # the usual case: str keys
-            for k, v in obj.items():
-                if type(v) not in _LEAVES and (new := _plain(v, seen)) is not v:
-                    obj[k] = new  # same key: the dict keeps its size and order
-            return obj
-        items = [(_plain(k, seen), k, _plain(v, seen), v) for k, v in obj.items()]
-        if any(nk is not k for nk, k, _, _ in items):
-            obj.clear()
-            obj.update((nk, nv) for nk, _, nv, _ in items)
-        else:
-            for nk, _, nv, v in items:
-                if nv is not v:
-                    obj[nk] = nv
+        for k, v in obj.items():  # the usual case: leaf keys (str); values changed in place
+            if type(k) not in _LEAVES:
+                return _plain_keys(obj, seen)
+            value_kind = type(v)
+            if value_kind in _LEAVES:
+                continue
+            if value_kind is _CheckedArray and id(v) not in seen and not v.dtype.hasobject:
+                seen[id(v)] = obj[k] = v.view(np.ndarray)  # the usual array, inline
+            elif (new := _plain(v, seen)) is not v:
+                obj[k] = new  # same key: the dict keeps its size and order
         return obj
-    if isinstance(obj, set):
+    if kind is _PickledDtype:
+        seen[key] = obj.built
+        return obj.built
+    if isinstance(obj, _Constructor):  # a global the file only named
+        return obj.kind
+    if isinstance(obj, list | set):  # set; a list subclass cannot be built
         seen[key] = obj
         new_items = [_plain(item, seen) for item in obj]
         if any(n is not o for n, o in zip(new_items, obj, strict=True)):
             obj.clear()
-            obj.update(new_items)
+            obj.extend(new_items) if isinstance(obj, list) else obj.update(new_items)
         return obj
     if isinstance(obj, tuple | frozenset):
         old = list(obj)
@@ -434,4 +751,4 @@ def _plain(obj: Any, seen: dict[int, Any]) -> Any:
         out = obj if all(n is o for n, o in zip(new_items, old, strict=True)) else kind(new_items)
         seen[key] = out
         return out
-    return obj  # numpy scalars, slices, ranges
+    return obj  # numpy scalars, slices, ranges, bytearrays

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -25,6 +26,7 @@ from dego._cli_args import (
     UsageError,
     add_device,
     bounded_int,
+    check_outputs,
     output_dir,
     parse_int,
     rerun_target,
@@ -162,10 +164,23 @@ def run_command(
         )
     created += output_dir(parser, "--out", args.out)
     created += rerun_target(parser, args.rerun)
+    outputs = demo_outputs(args.out, pictures=not args.no_pictures)
+    check_outputs(parser, [("--rerun", args.rerun), *(("--out", p) for p in outputs)], created)
     device = torch.device(args.device)
     return run_demo(
         args.seed, budget, device, args.out, pictures=not args.no_pictures, rerun=args.rerun
     )
+
+
+def demo_outputs(out: Path, *, pictures: bool = True) -> list[Path]:
+    """Every file :func:`run_demo` writes to ``out`` (the pictures' names whether or not
+    matplotlib is here), checked before the work starts."""
+    names = ["results.md", "results.json"]
+    if pictures:
+        names += [f"bev_{variant}.png" for variant in PICTURED_VARIANTS]
+        names += [f"camera_{variant}.png" for variant in VARIANTS]
+        names.append("losses.png")
+    return [out / name for name in names]
 
 
 LIFTED_ROW = row_name("lifted-labels")
@@ -274,29 +289,37 @@ def run_demo(
             + ", ".join(f"{group} {value:.3f}" for group, value in summary.items())
         )
 
+    recording_error: OSError | None = None
     if rerun is not None:
         from dego.demo.recording import record_demo
 
         began = time.perf_counter()
-        record_demo(
-            rerun,
-            clip,
-            labels,
-            results,
-            row_names={r.variant: row_name(r.variant) for r in results},
-            pictured=PICTURED_VARIANTS,
-            learns_mask=[r.variant for r in results if _learns_mask(r)],
-        )
-        print(
-            f"wrote {rerun} ({rerun.stat().st_size / 1e6:.1f} MB, "
-            f"{time.perf_counter() - began:.1f} s; open it with: dego view {rerun})"
-        )
+        try:
+            record_demo(
+                rerun,
+                clip,
+                labels,
+                results,
+                row_names={r.variant: row_name(r.variant) for r in results},
+                pictured=PICTURED_VARIANTS,
+                learns_mask=[r.variant for r in results if _learns_mask(r)],
+            )
+        except OSError as error:  # a full disk: the run's results are still written
+            recording_error = error
+        else:
+            print(
+                f"wrote {rerun} ({rerun.stat().st_size / 1e6:.1f} MB, "
+                f"{time.perf_counter() - began:.1f} s; open it with: dego view {rerun})"
+            )
     drawn = _pictures(out, clip, labels, results) if pictures else {}
     written = _write_results(
         out, table, gains, scores, seconds, masks, seed, budget, device, pictures=drawn
     )
     print(f"wrote {', '.join(str(path) for path in written)}")
     print(f"total {time.perf_counter() - start:.1f} s")
+    if recording_error is not None:
+        print(f"error: {recording_error}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -15,12 +15,13 @@ import os
 import sys
 from pathlib import Path
 
-from dego._atomic import check_output_file, remove_empty_dirs, write_files
+from dego._atomic import remove_empty_dirs, write_files
 from dego._cli_args import (
     MAX_THREADS,
     add_threads_argument,
     apply_threads,
     bounded_int,
+    output_problem,
     parse_device,
 )
 from dego.classes import FREE_LABEL
@@ -213,19 +214,17 @@ def run_command(
 
 
 def _check_reports(args: argparse.Namespace, created: list[Path]) -> str | None:
-    """Why ``--json`` / ``--markdown`` cannot be written (one line), or ``None``."""
-    paths = {flag: path for flag, path in (("--json", args.json), ("--markdown", args.markdown))}
-    both = args.json is not None and args.markdown is not None
-    if both and Path(args.json).resolve() == Path(args.markdown).resolve():
-        return f"--json and --markdown name the same file, {args.json}"
-    for flag, path in paths.items():
-        if path is None:
-            continue
-        try:
-            created += check_output_file(Path(path))
-        except OSError as error:
-            return f"{flag}: {error.strerror or error}"
-    return None
+    """Why ``--json`` / ``--markdown`` cannot be written (one line), or ``None``: each
+    must be a file that can be written, and no two of them and ``--rerun`` (the recording
+    flag :mod:`dego.cli` adds) may name the same file."""
+    return output_problem(
+        [
+            ("--json", args.json),
+            ("--markdown", args.markdown),
+            ("--rerun", getattr(args, "rerun", None)),
+        ],
+        created,
+    )
 
 
 def _run(args: argparse.Namespace, created: list[Path]) -> int:

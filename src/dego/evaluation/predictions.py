@@ -22,6 +22,7 @@ from dego._policy import check_memory
 from dego._typing import typechecked
 from dego.classes import NUM_CLASSES
 from dego.data.occ3d import LABELS_FILENAME, OCC3D_SHAPE
+from dego.evaluation.errors import EvaluationSetupError
 
 PREDICTION_KEYS = ("pred", "arr_0", "semantics")
 """The arrays a flat ``<token>.npz`` may hold its labels under: ``pred`` (SparseOcc),
@@ -42,11 +43,18 @@ def prediction_candidates(pred_root: Path, scene: str, token: str) -> tuple[Path
 
 @typechecked
 def find_prediction(pred_root: PathLike, scene: str, token: str) -> Path | None:
-    """The first existing file of :func:`prediction_candidates`, or ``None``."""
-    for path in prediction_candidates(Path(pred_root), scene, token):
-        if path.is_file():
-            return path
-    return None
+    """The file of :func:`prediction_candidates` that exists, or ``None``.
+
+    Raises :class:`EvaluationSetupError` naming both when two of them exist (e.g.
+    ``<token>.npz`` beside ``<token>.npy``): only one would be read, and which one is the
+    sample's prediction is the user's to say."""
+    found = [p for p in prediction_candidates(Path(pred_root), scene, token) if p.is_file()]
+    if len(found) > 1:
+        raise EvaluationSetupError(
+            f"--pred: sample {token!r} has {len(found)} prediction files, "
+            f"{' and '.join(str(p) for p in found)}; keep one (only one would be read)"
+        )
+    return found[0] if found else None
 
 
 def _npz_keys(path: Path) -> list[str]:

@@ -79,7 +79,8 @@ def run_eval_recording(
 ) -> int:
     """``dego eval`` with its recording flags: check them, ``score()`` (the exit status of
     :func:`dego.evaluation.command.run`), then, with ``--rerun``, record the first
-    ``--limit`` samples (rank 0 only under torchrun)."""
+    ``--limit`` samples (rank 0 only under torchrun). A recording that cannot be written
+    (a full or stalled disk) is one ``error:`` line and exit status 1, after the scores."""
     if args.limit is not None and args.rerun is None:
         parser.error("--limit: only with --rerun (every sample is scored either way)")
     benchmark = getattr(args, "benchmark", "occ3d-nuscenes")
@@ -94,14 +95,18 @@ def run_eval_recording(
     from dego.viz.eval_recording import record_samples
 
     start = time.perf_counter()
-    recorded = record_samples(
-        args.rerun,
-        args.gt,
-        args.pred,
-        limit=DEFAULT_LIMIT if args.limit is None else args.limit,
-        infos=args.infos,
-        missing=args.missing,
-    )
+    try:
+        recorded = record_samples(
+            args.rerun,
+            args.gt,
+            args.pred,
+            limit=DEFAULT_LIMIT if args.limit is None else args.limit,
+            infos=args.infos,
+            missing=args.missing,
+        )
+    except OSError as error:  # the recording cannot be written (a full or stalled disk)
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     print(
         f"wrote {recorded.path} ({recorded.recorded} samples, "
         f"{recorded.path.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - start:.1f} s)"

@@ -27,7 +27,9 @@ logs at the recording's current time.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from types import ModuleType
@@ -120,6 +122,15 @@ def _archetype(name: str, style: str, instead: str) -> Any:
 # --------------------------------------------------------------------------- recordings
 
 
+FLUSH_TIMEOUT_S = 60.0
+"""How long :func:`recording_file` waits, when its block ends, for the rest of the recording
+to reach the file before it gives up with an ``OSError`` (a full, stalled or very slow
+disk)."""
+
+_CLOSE_GRACE_S = 5.0
+"""Beyond :data:`FLUSH_TIMEOUT_S`: time for rerun to close the file (its footer)."""
+
+
 @contextlib.contextmanager
 def recording_file(
     path: str | os.PathLike[str],
@@ -131,24 +142,90 @@ def recording_file(
     ``path`` when the block ends without an error (an error removes it and leaves any
     previous ``path`` as it was). Class names and colours are logged first (:func:`log_classes`).
 
-    Raises ``OSError`` (one line) before anything is recorded when ``path`` cannot be written.
+    Raises ``OSError`` (one line naming ``path``) before anything is recorded when ``path``
+    cannot be written, and when the block ends if the recording cannot be written whole:
+    a write fails (a full disk), or the file does not take the rest within
+    :data:`FLUSH_TIMEOUT_S` seconds (a stalled disk). The temporary file is removed then.
     """
     rr = require_rerun()
     path = Path(path)
     check_output_file(path)
     tmp = temporary_name(path)
     recording = rr.RecordingStream(application_id)
+    closing = False
     try:
-        recording.save(tmp, default_blueprint=blueprint)
+        try:
+            recording.save(tmp, default_blueprint=blueprint)
+        except RuntimeError as error:  # rerun reports a failed write as a RuntimeError
+            raise OSError(f"cannot write the recording {path}: {_one_line(error)}") from None
         log_classes(recording=recording)
         yield recording
-        recording.flush()
-        recording.disconnect()
+        closing = True
+        _close(recording, path)
         os.replace(tmp, path)
     finally:
-        with contextlib.suppress(Exception):
-            recording.disconnect()
+        if not closing:
+            with contextlib.suppress(OSError):
+                _close(recording, path)
         tmp.unlink(missing_ok=True)
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split()) or type(error).__name__
+
+
+def _flush(recording: Any, timeout: float) -> None:
+    """``recording.flush``, waiting at most ``timeout`` seconds where rerun can bound it."""
+    if "timeout_sec" in inspect.signature(recording.flush).parameters:
+        recording.flush(timeout_sec=timeout)
+    else:  # pragma: no cover - an older rerun-sdk without a timeout; _close bounds the wait
+        recording.flush(blocking=True)
+
+
+def _close(recording: Any, path: Path) -> None:
+    """Flush ``recording`` into its file and close it, waiting at most about
+    :data:`FLUSH_TIMEOUT_S` seconds; ``OSError`` naming ``path`` when a write fails or the
+    file does not take the data in that time.
+
+    The flush and close run on a daemon thread: a file writer that is stuck (a stalled
+    disk) cannot hold this thread. Such a recording can never be closed, and rerun's
+    exit handler, which flushes every recording, would wait for it forever; that handler is
+    unregistered then, so that the process can still end."""
+    failures: list[BaseException] = []
+
+    def close() -> None:
+        try:
+            _flush(recording, FLUSH_TIMEOUT_S)
+        except Exception as error:  # rerun: RuntimeError
+            failures.append(error)
+        finally:
+            with contextlib.suppress(Exception):
+                recording.disconnect()
+
+    worker = threading.Thread(target=close, name="dego-rerun-close", daemon=True)
+    worker.start()
+    try:
+        worker.join(FLUSH_TIMEOUT_S + _CLOSE_GRACE_S)
+    finally:
+        if worker.is_alive():  # stuck, or Ctrl-C while closing
+            _forget_at_exit()
+    if worker.is_alive():
+        raise OSError(
+            f"cannot write the recording {path}: the file did not take it within "
+            f"{FLUSH_TIMEOUT_S:g} s (a full, stalled or very slow disk?)"
+        )
+    if failures:
+        raise OSError(
+            f"cannot write the recording {path}: rerun could not write it "
+            f"({_one_line(failures[0])}); is the disk full?"
+        )
+
+
+def _forget_at_exit() -> None:
+    """Unregister rerun's exit handler (it would wait forever on a stuck recording)."""
+    unregister = getattr(require_rerun(), "unregister_shutdown", None)
+    if unregister is not None:
+        unregister()
 
 
 def _stream(recording: RecordingStream | None) -> Any:
@@ -651,6 +728,7 @@ def send_blueprint(layout: Blueprint, *, recording: RecordingStream | None = Non
 
 
 __all__ = [
+    "FLUSH_TIMEOUT_S",
     "FRAME_TIMELINE",
     "GAUSSIAN_GREY",
     "MIN_RERUN",

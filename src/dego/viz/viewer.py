@@ -23,6 +23,11 @@ class ViewerUnavailableError(RuntimeError):
 
 def check_recording(path: Path) -> None:
     """Raise ``ValueError`` (one line) unless ``path`` is a readable rerun recording."""
+    if path.is_dir():
+        raise ValueError(
+            f"{path} is a directory; expected a rerun recording file (FILE.rrd, as "
+            "written by dego demo --rerun or dego eval --rerun)"
+        )
     if not path.is_file():
         raise ValueError(f"{path}: no such file")
     try:

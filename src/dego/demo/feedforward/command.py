@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ from dego._cli_args import (
     add_device,
     bounded_float,
     bounded_int,
+    check_outputs,
     config_error,
     format_ints,
     int_list,
@@ -30,6 +32,7 @@ from dego.demo.feedforward.data import MAX_CLIP_SECONDS, default_cache
 from dego.demo.feedforward.study import (
     PRESETS,
     FeedForwardStudyConfig,
+    feedforward_outputs,
     run_feedforward_study,
     write_feedforward_study,
 )
@@ -179,7 +182,9 @@ def study_config(args: argparse.Namespace) -> FeedForwardStudyConfig:
 def run_command(
     args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
 ) -> int:
-    """``dego train``: check the flags, create ``--out`` and the cache, run, write."""
+    """``dego train``: check the flags, create ``--out`` and the cache, check every output
+    file, run, write (all or nothing). A file that cannot be written at the end (a full
+    disk, ``--out`` made read-only meanwhile) is one ``error:`` line and exit status 1."""
     try:
         config = study_config(args)
     except ValueError as error:
@@ -195,6 +200,8 @@ def run_command(
         except OSError as error:
             parser.error(f"--cache: {cache}: {error.strerror or error}")
     created += output_dir(parser, "--out", args.out)
+    outputs = feedforward_outputs(args.out, config.variants, pictures=not args.no_pictures)
+    check_outputs(parser, [("--out", path) for path in outputs], created)
     data, training = config.data, config.train
     print(
         f"dego {__version__} train: seeds {format_ints(config.seeds)}, variants "
@@ -221,9 +228,23 @@ def run_command(
         config, cache=cache, device=torch.device(device), progress=progress, note=note
     )
     wall = time.perf_counter() - start
-    report, paths = write_feedforward_study(
-        result, config, args.out, wall_seconds=wall, device=device, pictures=not args.no_pictures
-    )
+    try:
+        report, paths = write_feedforward_study(
+            result,
+            config,
+            args.out,
+            wall_seconds=wall,
+            device=device,
+            pictures=not args.no_pictures,
+        )
+    except OSError as error:  # a full disk, --out made read-only during the run
+        where = error.filename if error.filename is not None else args.out
+        print(
+            f"error: cannot write {where}: {error.strerror or error}; "
+            f"the previous files in {args.out} are as they were",
+            file=sys.stderr,
+        )
+        return 1
     print(report)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     print(f"total {wall:.1f} s")

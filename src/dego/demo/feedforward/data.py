@@ -279,15 +279,20 @@ def load_scenes(
 
     A file is used only if it holds these render settings and this seed and every array
     reads back whole; otherwise it is rendered again, with a ``UserWarning`` naming the
-    file and what was wrong. ``progress(done, total)`` is called after each scene.
+    file and what was wrong. A scene that cannot be written to the cache (a full disk, a
+    read-only folder, a file where the folder should be, a directory where the file should
+    be) is a ``UserWarning`` naming the file and why, and nothing more is written to the
+    cache in this call: the scenes are still returned. ``progress(done, total)`` is called
+    after each scene.
     """
     folder = None if cache is None else cache / f"scenes-{config.digest()}"
     settings = config.render_settings()
     records = []
+    writing = folder is not None
     for done, seed in enumerate(seeds, 1):
         path = None if folder is None else folder / f"scene-{seed}.npz"
         record = None
-        if path is not None and path.exists():
+        if path is not None and os.path.lexists(path):
             try:
                 record = _read(path, seed, settings)
             except (ValueError, OSError) as error:
@@ -304,8 +309,16 @@ def load_scenes(
                 depth_noise=config.depth_noise,
             )
             record = SceneRecord.from_scene(scene)
-            if path is not None:
-                write_npz(path, record.arrays(settings), compressed=True)
+            if path is not None and writing:
+                try:
+                    write_npz(path, record.arrays(settings), compressed=True)
+                except OSError as error:
+                    writing = False
+                    warnings.warn(
+                        f"{path}: cannot cache the scene ({_reason(error, path)}); going on "
+                        "without caching",
+                        stacklevel=2,
+                    )
         records.append(record)
         if progress is not None:
             progress(done, len(seeds))
@@ -320,12 +333,36 @@ def _read(path: Path, seed: int, settings: dict[str, object]) -> SceneRecord:
     stored = bytes(arrays["settings"].astype(np.uint8)).decode("utf-8", "replace")
     if stored != json.dumps(settings, sort_keys=True):
         raise ValueError(f"made with other settings ({stored})")
-    if int(arrays["seed"]) != seed:
-        raise ValueError(f"holds scene {int(arrays['seed'])}, not {seed}")
+    stored_seed = _one_int(arrays, "seed")
+    if stored_seed != seed:
+        raise ValueError(f"holds scene {stored_seed}, not {seed}")
+    _one_int(arrays, "reference")
     grid = VoxelGrid.occ3d()
-    record = SceneRecord.from_arrays(arrays, grid)
+    try:
+        record = SceneRecord.from_arrays(arrays, grid)
+    except (TypeError, OverflowError) as error:  # an array of a type no tensor takes
+        raise ValueError(f"arrays of the wrong type ({error})") from None
     _check_shapes(record)
     return record
+
+
+def _reason(error: OSError, path: Path) -> str:
+    """An ``OSError`` of writing ``path`` in a few words: its reason, and the file it is
+    about where that is neither ``path`` nor its temporary file (a folder on the way)."""
+    reason = error.strerror or str(error)
+    named = None if error.filename is None else Path(os.fspath(error.filename))
+    if named is not None and named != path and not named.name.startswith(f".{path.name}."):
+        reason += f": {named}"
+    return reason
+
+
+def _one_int(arrays: dict[str, np.ndarray], name: str) -> int:
+    """The integer scalar array ``name`` of a cached scene (``ValueError`` for any other
+    shape or dtype: a float such as inf, two values)."""
+    value = arrays[name]
+    if value.shape != () or value.dtype.kind not in "iu":
+        raise ValueError(f"{name}: expected one integer, got shape {value.shape} of {value.dtype}")
+    return int(value)
 
 
 def _check_shapes(record: SceneRecord) -> None:

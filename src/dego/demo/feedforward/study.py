@@ -450,6 +450,15 @@ def _reading(differences: dict[tuple[str, str], dict[str, Interval]]) -> list[st
     return out
 
 
+def feedforward_outputs(out: Path, variants: Sequence[str], *, pictures: bool = True) -> list[Path]:
+    """Every file :func:`write_feedforward_study` writes to ``out`` for ``variants`` (the
+    pictures' names whether or not matplotlib is here), checked before the run starts."""
+    names = ["train.md", "train.json"]
+    if pictures:
+        names += [f"heldout_{variant}.png" for variant in variants]
+    return [out / name for name in names]
+
+
 def write_feedforward_study(
     result: FeedForwardRuns,
     config: FeedForwardStudyConfig,

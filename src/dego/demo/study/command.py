@@ -15,6 +15,7 @@ from dego._cli_args import (
     UsageError,
     add_device,
     bounded_int,
+    check_outputs,
     config_error,
     format_ints,
     int_list,
@@ -23,7 +24,7 @@ from dego._cli_args import (
 )
 from dego._version import __version__
 from dego.demo.clip import MAX_DEMO_FRAMES
-from dego.demo.study.report import write_study
+from dego.demo.study.report import study_outputs, write_study
 from dego.demo.study.runner import QUICK_STUDY, STUDY_VARIANTS, StudyConfig, run_study
 
 DESCRIPTION = (
@@ -109,6 +110,8 @@ def run_command(
     except ValueError as error:
         config_error(parser, error)
     created += output_dir(parser, "--out", args.out)
+    outputs = study_outputs(args.out, pictures=not args.no_pictures)
+    check_outputs(parser, [("--out", path) for path in outputs], created)
     runs = len(config.seeds) * len(config.budgets) * len(config.variants)
     fits = len(config.seeds) * len(config.budgets) * len(set(config.variants) - {"lifted-labels"})
     print(

@@ -175,6 +175,12 @@ def _reading(runs: Sequence[StudyRun], summary: dict) -> list[str]:
     return out
 
 
+def study_outputs(out: Path, *, pictures: bool = True) -> list[Path]:
+    """Every file :func:`write_study` writes to ``out`` (``study.png`` whether or not
+    matplotlib is here), checked before the study starts."""
+    return [out / "study.md", out / "study.json", *([out / "study.png"] if pictures else [])]
+
+
 def write_study(
     runs: Sequence[StudyRun], config: StudyConfig, out: Path, *, pictures: bool = True
 ) -> tuple[str, list[Path]]:
