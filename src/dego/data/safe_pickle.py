@@ -31,7 +31,9 @@ scalar uses it (a pickled dtype state may carry field offsets past its item size
 
 With numba installed (the ``eval`` extra) the file is first scanned by a compiled pass
 and then read by Python's C unpickler; without it, by the pure-Python unpickler (whose
-memo is a dict and whose reads are checked one by one), several times slower.
+memo is a dict and whose reads are checked one by one), several times slower. Either way
+the cyclic garbage collector is paused for the load (process-wide, as ``gc.disable``):
+the millions of containers a large file makes are not garbage yet.
 """
 
 from __future__ import annotations
