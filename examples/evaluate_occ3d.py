@@ -14,13 +14,16 @@ With no ``--gt`` / ``--pred`` the script builds a small data set from ``dego.Syn
 in a temporary folder: ground truth (``gts/<scene>/<token>/labels.npz``), perturbed
 predictions (``<token>.npz``, array ``pred`` as SparseOcc writes them), an infos file in
 the mmdet3d 0.x layout (plain dicts, what ``dego.data.load_infos`` reads without running
-any code) and per-sample origins (``<token>.npy``), and evaluates that.
+any code) and per-sample origins (``<token>.npy``), and evaluates that. With ``--demo-dir
+DIR`` the data set stays in ``DIR`` and the script prints the ``dego eval`` command that
+scores it the same way.
 """
 
 from __future__ import annotations
 
 import argparse
 import pickle
+import shlex
 import tempfile
 from pathlib import Path
 
@@ -132,6 +135,20 @@ def _has_infos_reader() -> bool:
     return hasattr(dego.data, "load_infos") and hasattr(dego.data, "SceneOrigins")
 
 
+def eval_command(
+    gt_root: Path, pred_root: Path, *, infos: Path | None, origins: Path | None, rayiou: bool
+) -> str:
+    """The ``dego eval`` command line that scores ``pred_root`` as this script does."""
+    words = ["dego", "eval", "--gt", str(gt_root), "--pred", str(pred_root)]
+    if infos is not None:
+        words += ["--infos", str(infos)]
+    if origins is not None:
+        words += ["--origins", str(origins)]
+    if not rayiou:
+        words.append("--no-rayiou")
+    return shlex.join(words)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="dego-eval-") as scratch:
@@ -168,6 +185,11 @@ def main(argv: list[str] | None = None) -> int:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(report.to_json())
             print(f"\nwrote {args.out}")
+        if args.gt is None and args.demo_dir is not None:  # the data set outlives the script
+            command = eval_command(
+                gt_root, pred_root, infos=infos, origins=origins, rayiou=args.rayiou
+            )
+            print(f"\nthe same from the command line: {command}")
     return 0 if report.complete else 1
 
 

@@ -4,9 +4,9 @@
     python examples/train_lightning.py --steps 3 --compile-backend aot_eager --out runs/lit
     python examples/train_lightning.py --precision 32-true --compile-backend none
 
-Needs the ``lightning`` extra (``pip install "dego-occupancy[lightning]"``: Lightning and
-torchmetrics). The ``decoupled`` variant of ``dego demo`` (``dego.demo.fit_scene``) as a
-``LightningModule``: canonical Gaussians (``GaussianSceneModel``) and a
+Needs the ``lightning`` extra (``pip install -e ".[lightning]"`` from the clone: Lightning
+and torchmetrics). The ``decoupled`` variant of ``dego demo`` (``dego.demo.fit_scene``) as
+a ``LightningModule``: canonical Gaussians (``GaussianSceneModel``) and a
 ``DecoupledDeformation`` fitted to one synthetic clip's 2D pseudo labels, one frame (three
 of its six cameras) per step.
 

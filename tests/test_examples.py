@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
+import shlex
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from dego.cli import main as dego_main
 from tests.helpers.repo import ROOT, needs_source_tree
 
 TMP = "{tmp}"  # replaced by the test's tmp_path
@@ -87,3 +90,38 @@ def test_example_runs(name: str, tmp_path: Path) -> None:
         assert {"miou", "iou", "rayiou"} <= metrics.keys() and metrics["units"] == "fraction"
         assert all(0 <= metrics[k] <= 1 for k in ("miou", "iou", "rayiou"))
         assert (tmp_path / "model.pt").is_file()
+
+
+@pytest.mark.slow
+def test_evaluate_demo_dir_prints_the_matching_dego_eval(
+    source_tree: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """With --demo-dir the demo data outlives the script, which prints the `dego eval` command
+    that scores it; that command, run as printed, gives the script's scores."""
+    spec = importlib.util.spec_from_file_location(
+        "evaluate_occ3d_example", source_tree / "examples" / "evaluate_occ3d.py"
+    )
+    assert spec is not None and spec.loader is not None
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    demo = tmp_path / "demo data"  # a space: the printed command must quote it
+    argv = ["--scenes", "1", "--frames", "2", "--demo-dir", str(demo)]
+    assert example.main([*argv, "--out", str(tmp_path / "script.json")]) == 0
+    prefix = "the same from the command line: "
+    printed = [line for line in capsys.readouterr().out.splitlines() if line.startswith(prefix)]
+    assert len(printed) == 1, printed
+    words = shlex.split(printed[0].removeprefix(prefix))
+    assert words[:2] == ["dego", "eval"]
+    assert words[words.index("--gt") + 1] == str(demo / "gt")
+    assert words[words.index("--pred") + 1] == str(demo / "pred")
+    assert words[words.index("--infos") + 1] == str(demo / "nuscenes_infos_val.pkl")
+
+    assert dego_main([*words[1:], "--quiet", "--json", str(tmp_path / "cli.json")]) == 0
+    script, cli = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("script", "cli"))
+    assert script["samples"] == cli["samples"] == 2
+    for key in ("occ3d", "weak", "rayiou"):
+        assert script[key] == cli[key], key
+
+    # without --demo-dir the data goes with its temporary folder: no command to print
+    assert example.main(["--scenes", "1", "--frames", "1", "--no-rayiou"]) == 0
+    assert prefix not in capsys.readouterr().out

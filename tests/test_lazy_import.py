@@ -20,19 +20,8 @@ from dego import _compile, _typing
 
 SRC = Path(dego.__file__).resolve().parent
 
-# What ``import dego`` may load: the version, the safe-globals registration and the one
-# function named like its module (and what that function's module imports).
-LOADED_BY_IMPORT = {
-    "dego",
-    "dego._version",
-    "dego._safe_globals",
-    "dego.spherical_harmonics",
-    "dego._typing",
-    "dego._policy",
-    "dego._checks",
-    "dego._geometry",
-    "dego._compile",
-}
+# What ``import dego`` may load: the version and the safe-globals registration (not torch).
+LOADED_BY_IMPORT = {"dego", "dego._version", "dego._safe_globals"}
 
 
 def _run(code: str) -> str:
@@ -61,7 +50,7 @@ def test_a_fresh_import_is_lean_and_every_name_then_resolves(tmp_path: Path) -> 
 import json, sys
 import dego
 loaded = sorted(m for m in sys.modules if m.startswith("dego"))
-heavy = sorted(m for m in ("torch._dynamo", "beartype") if m in sys.modules)
+heavy = sorted(m for m in ("torch", "torch._dynamo", "beartype") if m in sys.modules)
 import torch
 before_load = "dego.gaussians" in sys.modules
 restored = torch.load({str(checkpoint)!r}, weights_only=True)
@@ -99,6 +88,50 @@ status = main()
 print("cli" if "dego.cli" in sys.modules else "no cli", status)
 """
     assert _run(code).splitlines() == [f"dego {dego.__version__}", "no cli 0"]
+
+
+def test_dego_version_imports_no_torch() -> None:
+    """Issue 51: ``dego --version`` took 2.4 s, ``import dego`` (run first by the console
+    script ``dego._entry:main`` and by ``python -m dego``) importing torch. Both ways, no
+    torch, nothing of dego's beyond the version and the registration, numpy nor jaxtyping."""
+    heavy = ("torch", "numpy", "jaxtyping", "beartype")
+    code = f"""
+import sys
+sys.argv = ["dego", "--version"]
+from dego._entry import main
+status = main()
+print(status, sorted(m for m in sys.modules if m.startswith("dego") or m in {heavy!r}))
+"""
+    lines = _run(code).splitlines()
+    assert lines == [f"dego {dego.__version__}", f"0 {sorted(LOADED_BY_IMPORT | {'dego._entry'})}"]
+    result = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "dego", "--version"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert (result.returncode, result.stdout) == (0, f"dego {dego.__version__}\n"), result.stderr
+    imported = {line.rpartition("|")[2].strip() for line in result.stderr.splitlines()}
+    assert not imported & set(heavy), sorted(imported & set(heavy))
+
+
+def test_the_function_named_like_its_module_stays_the_packages_name(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``import dego`` no longer imports ``dego.spherical_harmonics``: importing that module
+    later (it binds its name in the package) still leaves ``dego.spherical_harmonics`` the
+    function, as when the package imported the function first."""
+    import dego.spherical_harmonics as by_statement
+
+    module = sys.modules["dego.spherical_harmonics"]
+    assert isinstance(module, types.ModuleType)
+    function = module.spherical_harmonics
+    assert dego.spherical_harmonics is function and by_statement is function
+    monkeypatch.setattr(dego, "spherical_harmonics", module)  # what the import system does
+    assert dego.spherical_harmonics is function
+    monkeypatch.setattr(dego, "other_name", module, raising=False)  # other names: as given
+    assert dego.other_name is module  # type: ignore[attr-defined]
 
 
 def _init_tree() -> ast.Module:

@@ -35,7 +35,8 @@ def test_typed_marker_is_shipped() -> None:
             "speed-up",
         ),
         ("bench_feedforward.py", ["--repeats", "1"], "splatting and losses"),
-        ("bench_threads.py", ["--load", "1", "--repeats", "1"], "--threads 1"),
+        ("bench_threads.py", ["--load", "1", "--repeats", "1", "--settle", "1"], "--threads 1"),
+        ("bench_infos.py", ["--samples", "40", "--sweeps", "2", "--repeats", "1"], "ratio"),
     ],
 )
 def test_benchmark_script_runs_on_a_small_case(

@@ -300,6 +300,41 @@ def test_paired_report_marks_resolved_signs() -> None:
     assert payload["paired"]["decoupled - static @ 10: articulated t=±1"]["mean"] == 4.0
 
 
+def test_the_quick_plot_keeps_its_titles_labels_and_legends_inside_the_figure() -> None:
+    """Issue 51: ``dego study --quick``'s right-hand title ("..., no interval (needs
+    3+)", one line) ran past the figure's right edge and was cut off in study.png (saved
+    at the figure's size, no tight bounding box)."""
+    pytest.importorskip("matplotlib")
+    from dego.demo.study import MASK_METRICS, study_figure
+
+    runs = [
+        StudyRun(
+            seed,
+            budget,
+            variant,
+            dict.fromkeys(METRICS, 0.0) | {"articulated t=±1": 10.0 + seed + k},
+            dict.fromkeys(MASK_METRICS, 0.5),
+            0.0,
+            1.0,
+        )
+        for seed in QUICK_STUDY.seeds
+        for budget in QUICK_STUDY.budgets
+        for k, variant in enumerate(QUICK_STUDY.variants)
+    ]
+    figure = study_figure(runs)
+    figure.canvas.draw()
+    page = figure.bbox
+    assert "no interval" in figure.axes[1].get_title()  # the quick study's long title
+    for axis in figure.axes:
+        legend = axis.get_legend()
+        for item in (axis.title, axis.xaxis.label, axis.yaxis.label, legend):
+            if item is None or (hasattr(item, "get_text") and not item.get_text()):
+                continue
+            box = item.get_window_extent()
+            inside = page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0
+            assert inside and box.y1 <= page.y1, (item, box, page)
+
+
 @pytest.mark.parametrize("seeds", [2, 3])
 def test_the_plot_draws_intervals_only_where_the_report_gives_them(seeds: int) -> None:
     """Issue 41 (5): with 2 seeds (``--quick``) the report prints n/a; the plot then draws

@@ -189,7 +189,7 @@ def test_without_matplotlib_plots_raise_a_helpful_import_error(
         lambda: plot_bev(labels),  # the installed module too
     ]
     for call in calls:
-        with pytest.raises(ImportError, match=r'pip install "dego-occupancy\[viz\]"'):
+        with pytest.raises(ImportError, match=r'pip install -e "\.\[viz\]"'):
             call()
 
 
@@ -221,7 +221,7 @@ for call in (
         call()
         failures.append("no error")
     except ImportError as error:
-        if 'pip install "dego-occupancy[viz]"' not in str(error):
+        if 'pip install -e ".[viz]"' not in str(error):
             failures.append(str(error))
 print(failures)
 """

@@ -4,21 +4,20 @@ Implements the building blocks of "Deformable Gaussian Occupancy" (DeGO, CVPR 20
 so that they run on CPU and GPU, in float32 and float64, with checked shapes.
 
 ``import dego`` is lean: each public name is imported from its module on first use
-(PEP 562), so that ``import dego`` or ``dego --version`` does not load every module.
+(PEP 562), so that ``import dego`` or ``dego --version`` loads no other module of dego's,
+nor torch.
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
+import sys
+import types
 from typing import TYPE_CHECKING, Any
 
 from dego import _safe_globals
 from dego._version import __version__
-
-# Named like its module: imported now, so that the name is the function whichever of the
-# two is imported first (importing a submodule binds its name in the package).
-from dego.spherical_harmonics import spherical_harmonics
 
 if TYPE_CHECKING:  # the same names, for type checkers and editors
     from dego._policy import get_memory_limit, memory_limit, set_memory_limit
@@ -77,6 +76,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and editors
         per_class_iou,
     )
     from dego.raycast import cast_rays, generate_lidar_rays, observed_voxels
+    from dego.spherical_harmonics import spherical_harmonics
     from dego.splatting import DifferentiableSplatter, SplatOutput, splat
     from dego.teacher import (
         FactorizedSpatioTemporalTeacher,
@@ -90,8 +90,26 @@ if TYPE_CHECKING:  # the same names, for type checkers and editors
 
 # GaussianSet and the result dataclasses load with torch.load(weights_only=True) once dego
 # is imported (torch >= 2.4), without importing their modules yet; see docs/foundation.md,
-# "Saving and loading".
-_safe_globals.register_safe_globals()
+# "Saving and loading". Registered now where torch is loaded, else when torch's import ends.
+_safe_globals.register_when_torch_loads()
+
+_NAMED_LIKE_ITS_MODULE = ("spherical_harmonics",)
+"""Public functions named like the submodule that defines them."""
+
+
+class _Package(types.ModuleType):
+    """The type of the ``dego`` module: importing a submodule binds its name in the package
+    (``setattr``); for a function named like its module (:data:`_NAMED_LIKE_ITS_MODULE`) the
+    package keeps the function instead, whichever of the two is imported first (as when
+    ``import dego`` imported the function, and torch with it)."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in _NAMED_LIKE_ITS_MODULE and isinstance(value, types.ModuleType):
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
 
 _EXPORTS: dict[str, str] = {
     name: module
@@ -170,6 +188,7 @@ _EXPORTS: dict[str, str] = {
             "generate_lidar_rays",
             "observed_voxels",
         ),
+        "dego.spherical_harmonics": ("spherical_harmonics",),
         "dego.splatting": (
             "DifferentiableSplatter",
             "SplatOutput",

@@ -56,10 +56,14 @@ class ProgressBar:
         self.interactive = self.stream.isatty()
         self.start = time.perf_counter()
         self.last_draw = 0.0
+        self.first: tuple[int, float] | None = None
+        """(steps done, time) at the first call: the rate counts the steps after it."""
 
     def __call__(self, iteration: int, losses: dict[str, float]) -> None:
         done = iteration + 1
         now = time.perf_counter()
+        if self.first is None:
+            self.first = (done, now)
         if self.interactive:
             if done < self.total and now - self.last_draw < 0.1:
                 return
@@ -73,11 +77,12 @@ class ProgressBar:
     def _line(self, done: int, losses: dict[str, float], now: float) -> str:
         width = 24
         filled = width * done // max(self.total, 1)
-        rate = done / max(now - self.start, 1e-9)
-        loss = f"loss {losses['total']:.3f} " if "total" in losses else ""
+        first_done, first_time = self.first if self.first is not None else (done, now)
+        loss = f" loss {losses['total']:.3f}" if "total" in losses else ""
+        speed = pace(done - first_done, now - first_time, self.total - done)
         return (
-            f"{self.label:>10} [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} "
-            f"{loss}ETA {clock((self.total - done) / rate)} {rate:.1f} it/s"
+            f"{self.label:>10} [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total}"
+            f"{loss}{' ' if speed else ''}{speed}"
         )
 
 
@@ -86,6 +91,22 @@ def clock(seconds: float) -> str:
     minutes, secs = divmod(round(seconds), 60)
     hours, minutes = divmod(minutes, 60)
     return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"
+
+
+MIN_TIMED_STEPS = 2
+"""The fewest steps a progress line's rate is measured over (issue 51: from the first step
+alone it read ``117329.6 it/s``, the bar made just before that step's end)."""
+
+
+def pace(steps: int, seconds: float, left: int) -> str:
+    """``"ETA 0:12 3.4 it/s"`` (``s/it`` below one step a second, not ``0.0 it/s``):
+    ``steps`` timed over ``seconds``, ``left`` to go; ``""`` until :data:`MIN_TIMED_STEPS`
+    steps are timed."""
+    if steps < MIN_TIMED_STEPS or seconds <= 0:
+        return ""
+    rate = steps / seconds
+    speed = f"{rate:.1f} it/s" if rate >= 1 else f"{1 / rate:.1f} s/it"
+    return f"ETA {clock(left / rate)} {speed}"
 
 
 def parse_device(text: str) -> str:
@@ -162,27 +183,113 @@ def bounded_float(low: float, high: float, *, open_low: bool = False) -> Callabl
 MAX_THREADS = 256
 """The most threads ``--threads`` allows."""
 
+AUTO_THREADS = "auto"
+"""``--threads auto``, the default: :func:`auto_threads` decides from the machine's load."""
+
+BUSY_MARGIN = 1.2
+"""``--threads auto`` counts the machine busy when its 1-minute load average is at least
+its cores minus this (0.8 on 2 cores): other jobs leave at most about one core free, and
+torch's threads would wait for each other. The load is the other jobs': the command has
+not started computing when it looks. One steady other job shows as a load approaching
+1.0 from below, so the threshold sits under cores - 1. Measured on 2 cores
+(docs/performance.md, Threads): beside one busy process (load 0.7-1.3) torch's 2 threads
+were 1.2-3.8x slower than 1; at a load of 0.4-0.6 they were as fast or 1.7x faster."""
+
 THREADS_HELP = (
-    "CPU threads per process (torch.set_num_threads; default: torch's, one per core). "
-    "On a shared or busy machine 1 is often much faster: torch's threads otherwise wait "
-    "for each other (docs/performance.md, Threads)"
+    "CPU threads per process (torch.set_num_threads), or auto (the default): 1 when other "
+    "jobs keep the machine busy (1-minute load average >= cores - 1.2), torch's default (one "
+    "per core) otherwise; auto prints a note when it picks 1, and leaves the threads alone "
+    "where OMP_NUM_THREADS is set or the load is unknown (Windows). On a shared machine 1 "
+    "is often several times faster: torch's threads otherwise wait for each other "
+    "(docs/performance.md, Threads)"
 )
 
 
+def auto_threads(load: float | None, cores: int) -> int | None:
+    """What ``--threads auto`` sets, from the 1-minute load average ``load`` (``None``:
+    unknown) and the ``cores`` this process may run on: 1 when the machine is busy,
+    ``load >= cores - BUSY_MARGIN``; ``None`` (torch's default) when it is not or the
+    load is unknown. Pure: :func:`apply_threads` reads the machine."""
+    if load is None or not math.isfinite(load):
+        return None
+    return 1 if load >= max(cores, 1) - BUSY_MARGIN else None
+
+
+def machine_load() -> float | None:
+    """The 1-minute load average (``os.getloadavg``), or ``None`` where there is none
+    (Windows) or it cannot be read."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return None
+
+
+def usable_cores() -> int:
+    """The CPUs this process may run on (its affinity where the system has one)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def parse_threads(text: str) -> int | str:
+    """A ``--threads`` value: ``auto`` or an int in ``[1, MAX_THREADS]``."""
+    if text.strip().lower() == AUTO_THREADS:
+        return AUTO_THREADS
+    try:
+        return bounded_int(1, MAX_THREADS)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected auto or an int in [1, {MAX_THREADS}], got {text!r}"
+        ) from None
+
+
+parse_threads.__name__ = "threads"
+
+
 def add_threads_argument(parser: argparse.ArgumentParser) -> None:
-    """The ``--threads N`` flag of every ``dego`` command that computes."""
+    """The ``--threads N`` / ``--threads auto`` flag of every ``dego`` command that
+    computes (default: auto)."""
     parser.add_argument(
-        "--threads", type=bounded_int(1, MAX_THREADS), metavar="N", help=THREADS_HELP
+        "--threads", type=parse_threads, default=AUTO_THREADS, metavar="N", help=THREADS_HELP
     )
 
 
-def apply_threads(threads: int | None) -> None:
+def apply_threads(
+    threads: int | str | None, *, quiet: bool = False, stream: TextIO | None = None
+) -> int | None:
     """``--threads N``: N threads in this process, and ``OMP_NUM_THREADS=N`` for the
-    processes it starts (``--workers``, subprocesses); ``None`` leaves torch's default."""
+    processes it starts (``--workers``, subprocesses); ``None`` leaves torch's default.
+
+    ``--threads auto``: where ``OMP_NUM_THREADS`` is set (torch read it at start) nothing
+    changes; otherwise :func:`auto_threads` of :func:`machine_load` and
+    :func:`usable_cores`, applied as above, with a one-line note on ``stream`` (stderr)
+    unless ``quiet`` when it picks fewer threads than torch has. Returns the count set
+    (``None``: torch's default kept), so applying the result again changes nothing."""
+    if threads == AUTO_THREADS:
+        if "OMP_NUM_THREADS" in os.environ:
+            return None
+        load, cores = machine_load(), usable_cores()
+        chosen = auto_threads(load, cores)
+        if chosen is None:
+            return None
+        if not quiet and chosen < torch.get_num_threads() and os.environ.get("RANK", "0") == "0":
+            print(
+                f"dego: threads: {chosen} (auto: load {load:.1f} on {cores} cores; "
+                "--threads N to choose)",
+                file=stream or sys.stderr,
+                flush=True,
+            )
+        threads = chosen
     if threads is None:
-        return
+        return None
+    if isinstance(threads, str) or not 1 <= threads <= MAX_THREADS:
+        raise ValueError(
+            f"threads: expected auto, None or an int in [1, {MAX_THREADS}], got {threads!r}"
+        )
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
+    return threads
 
 
 def add_device(parser: argparse.ArgumentParser) -> None:
@@ -300,7 +407,7 @@ def rerun_target(parser: argparse.ArgumentParser, path: Path | None) -> list[Pat
     if path is None:
         return []
     if importlib.util.find_spec("rerun") is None:
-        parser.error('--rerun: needs rerun-sdk: pip install "dego-occupancy[rerun]"')
+        parser.error('--rerun: needs rerun-sdk: pip install -e ".[rerun]" in your dego clone')
     if path.suffix != ".rrd":
         parser.error(f"--rerun: expected a file name ending in .rrd, got {str(path)!r}")
     try:

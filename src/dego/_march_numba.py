@@ -6,7 +6,7 @@ state, tie-break, exit distances, placeholders and step limit as the torch trave
 ray is traversed once for all label grids it is cast through (RayIoU's prediction and
 ground truth share rays): it stops when every grid has been hit or it leaves the grid.
 
-numba is an optional dependency (``pip install "dego-occupancy[eval]"``); it is imported
+numba is an optional dependency (``pip install -e ".[eval]"`` from the clone); it is imported
 on first use only. The kernel is compiled on its first call (a few seconds) and cached
 on disk (numba's ``cache=True``: next to this file, or numba's user-wide cache when that
 is not writable).

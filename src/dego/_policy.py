@@ -215,6 +215,10 @@ LOGITS_HINT = (
     "every value lies outside [0, 1], which looks like logits: use "
     'GaussianSet.from_tensors(..., opacity_space="logit")'
 )
+MOSTLY_LOGITS_HINT = (
+    "most values lie outside [0, 1], as logits do: if they are logits, use "
+    'GaussianSet.from_tensors(..., opacity_space="logit")'
+)
 
 
 def _example(values: Tensor, bad: Tensor) -> str:
@@ -260,16 +264,21 @@ def quats_check(prefix: str, quats: Tensor) -> Check:
 
 
 def opacities_check(prefix: str, opacities: Tensor) -> Check:
-    """Opacities must lie in [0, 1]; the message adds the logits hint when none does."""
+    """Opacities must lie in [0, 1]; the message adds the logits hint when none does, and
+    a softer one when most do not (logits of a network or a file: about two thirds of
+    standard-normal logits lie outside [0, 1]); a few stray values get none."""
     outside = (opacities < 0) | (opacities > 1)
 
     def error() -> Exception:
+        count, total = int(outside.sum()), opacities.numel()
         message = (
-            f"{prefix}opacities: {int(outside.sum())} of {opacities.numel()} values lie "
+            f"{prefix}opacities: {count} of {total} values lie "
             f"outside [0, 1] (e.g. {_example(opacities, outside)})"
         )
-        if bool(outside.all()):
+        if count == total:
             message += f"; {LOGITS_HINT}"
+        elif 2 * count > total:
+            message += f"; {MOSTLY_LOGITS_HINT}"
         return ValueError(message)
 
     return ~outside.any(), f"{prefix}opacities: values lie outside [0, 1]", error
@@ -304,6 +313,7 @@ __all__ = [
     "HALF_DTYPES",
     "LOGITS_HINT",
     "LOG_SCALES_HINT",
+    "MOSTLY_LOGITS_HINT",
     "Check",
     "autocast_enabled",
     "check_dtype",

@@ -3,15 +3,26 @@
 The classes are named, not imported: ``import dego`` registers them without loading their
 modules (and without an import circle with :mod:`dego._serialization`, which every result
 class imports); a class is imported when a pickle first names it.
+
+``import dego`` does not import torch either (``dego --version`` answers without it):
+:func:`register_when_torch_loads` registers the classes at once where torch is loaded
+already, else as soon as torch's import finishes, so that ``import dego`` then ``import
+torch`` loads dego's objects with ``weights_only=True`` as ``import torch`` then ``import
+dego`` does.
 """
 
 from __future__ import annotations
 
 import functools
 import importlib
+import importlib.abc
+import importlib.util
+import sys
+import threading
+from collections.abc import Sequence
+from importlib.machinery import ModuleSpec
+from types import ModuleType
 from typing import Any
-
-import torch
 
 _SAFE_NAMES = (
     "dego.gaussians.GaussianSet",
@@ -131,7 +142,9 @@ def register_safe_globals() -> bool:
     From torch 2.5 each class's pickled name (and the names it had before a module split)
     resolves to its :class:`_Unbuilt` stand-in, so that a pickle cannot leave a dego object
     whose fields were never checked; no class is imported until a pickle names it. torch
-    2.4 allowlists the classes themselves (imported now)."""
+    2.4 allowlists the classes themselves (imported now). Imports torch."""
+    import torch
+
     add = getattr(torch.serialization, "add_safe_globals", None)
     if add is None:
         return False
@@ -143,4 +156,55 @@ def register_safe_globals() -> bool:
     return True
 
 
-__all__ = ["register_safe_globals", "safe_types"]
+class _RegisterOnTorchImport(importlib.abc.MetaPathFinder):
+    """A finder first on ``sys.meta_path`` that finds nothing itself: for ``torch`` it asks
+    the other finders for the spec and has that spec's loader call
+    :func:`register_safe_globals` once torch's ``__init__`` has run (then the loader is as
+    it was). Once that is done it only answers ``None`` (it stays on ``sys.meta_path``:
+    removing it while another thread walks the list could make that thread skip a finder)."""
+
+    def __init__(self) -> None:
+        self.done = False
+        self._finding = threading.local()
+
+    def find_spec(
+        self, fullname: str, path: Sequence[str] | None, target: ModuleType | None = None
+    ) -> ModuleSpec | None:
+        if fullname != "torch" or self.done or getattr(self._finding, "active", False):
+            return None
+        self._finding.active = True  # the finders after this one, not this one again
+        try:
+            spec = importlib.util.find_spec(fullname)
+        finally:
+            self._finding.active = False
+        loader = spec.loader if spec is not None else None
+        if spec is None or loader is None or not hasattr(loader, "exec_module"):
+            return None  # the import goes on (or fails) without this finder
+        run = loader.exec_module
+
+        def exec_module(module: ModuleType) -> None:
+            vars(loader).pop("exec_module", None)  # the loader as it was, from now on
+            run(module)
+            self.done = True
+            register_safe_globals()
+
+        try:  # this spec's own loader (one per spec), not its class
+            loader.exec_module = exec_module  # type: ignore[method-assign]
+        except AttributeError:  # pragma: no cover - a loader without an instance dict
+            return None
+        return spec
+
+
+_HOOK = _RegisterOnTorchImport()
+
+
+def register_when_torch_loads() -> None:
+    """:func:`register_safe_globals` now if torch is imported already, else as soon as
+    torch's import finishes (without importing torch here)."""
+    if "torch" in sys.modules:
+        register_safe_globals()
+    elif _HOOK not in sys.meta_path:
+        sys.meta_path.insert(0, _HOOK)
+
+
+__all__ = ["register_safe_globals", "register_when_torch_loads", "safe_types"]

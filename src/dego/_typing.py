@@ -15,6 +15,18 @@
   ``TypeCheckError`` naming the parameter. Shapes are known while tracing, so the check
   adds no graph break and no host sync; dynamo's guards make it hold for every call that
   reuses the graph.
+
+Two mistakes get a one-line error instead of the checkers' dump, eager and compiled:
+
+- **A value outside a ``Literal``** (``splat(..., backend="cuda")``): checked before
+  anything else, it raises ``ValueError("splat(): backend: expected one of 'torch', ...,
+  got 'cuda'")``, naming the function, the parameter, the value and the allowed values
+  (:func:`literal_error`; a device name given for an option says the device comes from
+  the tensors).
+- **A missing argument** (eager): ``TypeError`` naming the function and the argument the
+  caller left out, found by trying which omission makes the given positional arguments
+  fit their annotations (``deformation(gaussians, times)`` misses ``features``, not
+  ``times``), and how to call it.
 """
 
 from __future__ import annotations
@@ -22,6 +34,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
+import itertools
+import math
+import re
 import sys
 import types
 import typing
@@ -93,8 +108,44 @@ class _Enclosing(dict[str, Any]):
         raise KeyError(name)
 
 
+# A Literal parameter: (name, its position or None when keyword-only, the allowed values,
+# whether only strings are checked: the Literal is a union with types that take no string).
+_Literal = tuple[str, int | None, tuple[Any, ...], bool]
+
+
+def _literal_spec(name: str, index: int | None, hint: Any) -> _Literal | None:
+    """The :data:`_Literal` of a parameter annotated with a ``Literal`` (or a union of
+    ``Literal`` s, ``None`` and types that cannot hold a string); ``None`` for any other."""
+    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+    allowed: list[Any] = []
+    others = []
+    for alternative in typing.get_args(hint) if union else (hint,):
+        if typing.get_origin(alternative) is typing.Annotated:
+            alternative = typing.get_args(alternative)[0]
+        if typing.get_origin(alternative) is typing.Literal:
+            allowed.extend(typing.get_args(alternative))
+        elif alternative is None or alternative is type(None):
+            allowed.append(None)
+        else:
+            others.append(alternative)
+    if not any(value is not None for value in allowed):
+        return None
+    # beside other types, only a string is known to be wrong (and only if none takes one)
+    if any(not isinstance(other, type) or issubclass(str, other) for other in others):
+        return None
+    return (name, index, tuple(dict.fromkeys(allowed)), bool(others))
+
+
 def _specs(fn: Callable[..., Any]) -> tuple[tuple[str, ...], tuple[_Spec, ...]]:
     """The names of ``fn``'s positional parameters and the specs of its array parameters."""
+    positional, specs, _ = _all_specs(fn)
+    return positional, specs
+
+
+def _all_specs(
+    fn: Callable[..., Any],
+) -> tuple[tuple[str, ...], tuple[_Spec, ...], tuple[_Literal, ...]]:
+    """:func:`_specs` and the specs of ``fn``'s ``Literal`` parameters."""
     hints = typing.get_type_hints(fn, localns=_Enclosing(fn), include_extras=True)
     parameters = inspect.signature(fn).parameters
     positional = tuple(
@@ -103,7 +154,154 @@ def _specs(fn: Callable[..., Any]) -> tuple[tuple[str, ...], tuple[_Spec, ...]]:
         if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
     )
     specs = (_parameter_spec(name, hints[name]) for name in parameters if name in hints)
-    return positional, tuple(s for s in specs if s is not None)
+    literals = (
+        _literal_spec(name, positional.index(name) if name in positional else None, hints[name])
+        for name, p in parameters.items()
+        if name in hints and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    )
+    return (
+        positional,
+        tuple(s for s in specs if s is not None),
+        tuple(s for s in literals if s is not None),
+    )
+
+
+_DEVICE = re.compile(r"(cpu|cuda|gpu|mps|xpu|hip|rocm)(:\d+)?", re.IGNORECASE)
+
+
+def _describe(value: object) -> str:
+    """``value`` for a one-line message: a short repr, or its type for anything else."""
+    if value is None or isinstance(value, str | int | float | bool):
+        text = repr(value)
+        return text if len(text) <= 60 else text[:57] + "..."
+    if isinstance(value, torch.Tensor):
+        return f"a tensor of shape {tuple(value.shape)}"
+    return f"a {type(value).__name__}"
+
+
+def device_hint(name: str, value: object) -> str:
+    """``"; 'cuda' is a device, not a backend: ..."`` when ``value``, refused for option
+    ``name``, names a device (dego computes where the tensors are); ``""`` otherwise."""
+    if not isinstance(value, str) or not _DEVICE.fullmatch(value):
+        return ""
+    return (
+        f"; {value!r} is a device, not a {name}: dego computes on the device of the input "
+        f"tensors, so move them there with .to({value!r})"
+    )
+
+
+def literal_error(where: str, name: str, value: object, allowed: tuple[Any, ...]) -> ValueError:
+    """The one-line error of a value outside a parameter's ``Literal``: ``where`` (the
+    function, ``"splat()"``), the parameter, the value given and the allowed values."""
+    choices = ", ".join(map(repr, allowed))
+    return ValueError(
+        f"{where}: {name}: expected one of {choices}, got {_describe(value)}"
+        f"{device_hint(name, value)}"
+    )
+
+
+def _is_allowed(value: object, allowed: tuple[Any, ...]) -> bool:
+    # by type and value, like beartype: 1 is not '1', a tensor is compared to nothing
+    for choice in allowed:
+        if value is choice or (
+            choice is not None and isinstance(value, type(choice)) and value == choice
+        ):
+            return True
+    return False
+
+
+def _check_literals(
+    where: str, literals: tuple[_Literal, ...], args: tuple[Any, ...], kwargs: dict[str, Any]
+) -> None:
+    """Raise :func:`literal_error` for the first given argument outside its ``Literal``."""
+    for name, index, allowed, strings_only in literals:
+        if name in kwargs:
+            value = kwargs[name]
+        elif index is not None and index < len(args):
+            value = args[index]
+        else:  # the default
+            continue
+        if strings_only and not isinstance(value, str):
+            continue
+        if not _is_allowed(value, allowed):
+            raise literal_error(where, name, value, allowed)
+
+
+_MAX_GUESSES = 64  # placements of the omitted arguments tried by _binding_error
+
+
+def _fits(value: object, hint: Any) -> bool:
+    from beartype.door import is_bearable
+
+    try:
+        return bool(is_bearable(value, hint))
+    except Exception:  # a hint beartype cannot check alone: no evidence either way
+        return True
+
+
+def _binding_error(
+    fn: Callable[..., Any], where: str, args: tuple[Any, ...], kwargs: dict[str, Any]
+) -> TypeError | None:
+    """The one-line ``TypeError`` of a call whose arguments do not bind to ``fn``'s
+    parameters (``None`` when they do). A missing argument is named as the caller left
+    it out: when positional arguments came shifted (``deformation(gaussians, times)``),
+    the first placement of the omitted parameters under which every positional argument
+    fits its annotation names them (``features``), rather than the last ones Python
+    reports (``times``)."""
+    signature = inspect.signature(fn)
+    try:
+        signature.bind(*args, **kwargs)
+        return None
+    except TypeError as error:
+        reason = str(error)
+    try:
+        bound = signature.bind_partial(*args, **kwargs).arguments
+    except TypeError:  # too many arguments, an unknown keyword, one given twice
+        return TypeError(f"{where}: {reason}")
+    parameters = list(signature.parameters.values())
+    required = [
+        p
+        for p in parameters
+        if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
+    positional_kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    method = bool(parameters) and parameters[0].name in ("self", "cls") and "." in fn.__qualname__
+    slots = [p for p in required if p.kind in positional_kinds and p.name not in kwargs]
+    fixed = 1 if method and args and slots and slots[0] is parameters[0] else 0
+    count = len(args) - fixed
+    candidates = slots[fixed:]
+    omitted = [p.name for p in candidates[count:]]  # Python's reading: the last ones
+    if 0 < len(omitted) and math.comb(len(candidates), len(omitted)) <= _MAX_GUESSES:
+        try:
+            hints = typing.get_type_hints(fn, include_extras=True)
+        except Exception:
+            hints = {}
+        placements = itertools.combinations(range(len(candidates)), len(omitted))
+        for placement in placements:
+            given = [p for i, p in enumerate(candidates) if i not in placement]
+            if all(
+                p.name not in hints or _fits(value, hints[p.name])
+                for p, value in zip(given, args[fixed:], strict=True)
+            ):
+                omitted = [candidates[i].name for i in placement]
+                break
+    omitted += [p.name for p in required if p.kind is p.KEYWORD_ONLY and p.name not in bound]
+    if not omitted:
+        return TypeError(f"{where}: {reason}")
+    call = ", ".join(
+        p.name if p.kind in positional_kinds else f"{p.name}=..." for p in required[fixed:]
+    )
+    if not method:
+        callee = fn.__name__
+    elif fn.__name__ in ("forward", "__call__"):
+        callee = "module" if fn.__name__ == "forward" else "obj"
+    else:
+        callee = f"obj.{fn.__name__}"
+    names = ", ".join(map(repr, omitted))
+    plural = "s" if len(omitted) > 1 else ""
+    return TypeError(
+        f"{where} missing required argument{plural} {names} (call it as {callee}({call}))"
+    )
 
 
 def _matches(value: torch.Tensor, array: _Array, sizes: dict[str, Any]) -> bool:
@@ -246,17 +444,29 @@ def typechecked(fn: F) -> F:
         return checks[0]
 
     qualname = f"{fn.__module__}.{fn.__qualname__}"
-    positional, specs = _specs(fn)  # now: a first call under torch.compile needs no break
+    where = f"{fn.__qualname__}()"
+    # now: a first call under torch.compile needs no break
+    positional, specs, literals = _all_specs(fn)
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if literals:  # first: a wrong option is named whatever else is wrong
+            _check_literals(where, literals, args, kwargs)
         if _is_compiling():
             _traced_check(qualname, specs, {**dict(zip(positional, args, strict=False)), **kwargs})
             return fn(*args, **kwargs)
         check_arguments, check_result = checks[0] if checks else build_checks()
         # Each check as is, or with dynamo disabled once torch._dynamo is loaded (see the
         # module docstring).
-        check_arguments[DYNAMO in sys.modules](*args, **kwargs)
+        try:
+            check_arguments[DYNAMO in sys.modules](*args, **kwargs)
+        except TypeError as error:
+            if isinstance(error, TypeCheckError):
+                raise
+            binding = _binding_error(fn, where, args, kwargs)
+            if binding is None:
+                raise
+            raise binding from None
         result = fn(*args, **kwargs)
         if check_result is not None:
             check_result[DYNAMO in sys.modules](*args, **kwargs, **{_RESULT: result})
@@ -296,4 +506,4 @@ def check_tensor_fields(record: Any) -> None:
         checkers[DYNAMO in sys.modules](**{name: getattr(record, name) for name in names})
 
 
-__all__ = ["check_tensor_fields", "typechecked"]
+__all__ = ["check_tensor_fields", "device_hint", "literal_error", "typechecked"]

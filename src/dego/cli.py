@@ -143,7 +143,8 @@ def _dispatch(argv: list[str], created: list[Path]) -> int:
     args = build_parser(load=[name] if name in COMMANDS else []).parse_args(argv)
     module: ModuleType = args.command_module
     parser: argparse.ArgumentParser = args.command_parser
-    apply_threads(getattr(args, "threads", None))
+    if hasattr(args, "threads"):  # --threads auto resolved once: the command sees a count
+        args.threads = apply_threads(args.threads, quiet=getattr(args, "quiet", False))
     try:
         if args.command in WRAPPERS:
             run = getattr(_wrapper_module(), WRAPPERS[args.command][1])

@@ -214,6 +214,16 @@ def _describe_expected(name: str, batch: tuple[int, ...], n: int, channels: int 
     return f"{name}: expected shape {symbolic} = ({', '.join(dims)})"
 
 
+def _opacities_hint(name: str, value: Tensor, n: int) -> str:
+    """For ``(*batch, N, 1)`` opacities (gsplat's layout): the constructor that takes them."""
+    if name != "opacities" or value.ndim < 2 or tuple(value.shape[-2:]) != (n, 1):
+        return ""
+    return (
+        "; GaussianSet.from_tensors(..., opacities=o) takes (*batch, N, 1) opacities (and "
+        'logits with opacity_space="logit"), or pass o.squeeze(-1)'
+    )
+
+
 @dataclasses.dataclass(frozen=True, eq=False, repr=False)
 class GaussianSet(_serialization.DictForm):
     """A (batched) set of N 3D Gaussians; all tensors share batch shape, N, dtype and device.
@@ -262,6 +272,7 @@ class GaussianSet(_serialization.DictForm):
             if not ok:
                 raise ValueError(
                     f"{_describe_expected(name, batch, n, channels)}, got {tuple(value.shape)}"
+                    f"{_opacities_hint(name, value, n)}"
                 )
             if value.dtype != means.dtype and not _autocast_features(name, value, means):
                 raise TypeError(

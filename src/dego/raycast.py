@@ -356,7 +356,7 @@ def cpu_kernel() -> str:
     if choice == "numba" and not _march_numba.available():
         raise ImportError(
             'dego.raycast.CPU_KERNEL is "numba" but numba is not installed '
-            '(pip install "dego-occupancy[eval]")'
+            '(pip install -e ".[eval]" in your dego clone)'
         )
     if choice == "auto":
         return "numba" if _march_numba.available() else "torch"

@@ -9,8 +9,10 @@ import math
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -229,6 +231,37 @@ def test_outputs_that_cannot_be_written_are_one_error_line_and_the_old_files_sta
     assert f": {reason}; the previous files in {out} are as they were" in lines[0]
     monkeypatch.undo()
     assert _contents(out) == before and sorted(p.name for p in out.iterdir()) == sorted(before)
+
+
+def test_the_printed_total_is_the_whole_command_the_report_and_pictures_included(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 51: ``total`` stopped before the report and pictures were written (195 s
+    printed, 301 s taken), where ``dego demo`` and ``dego study`` count them. A clock that
+    the stand-in study moves 100 s and the writing 200 s: total 300 s, the report's own
+    wall time (written before its writing ends) 100 s."""
+    offset = [0.0]
+    perf_counter = time.perf_counter
+    monkeypatch.setattr(time, "perf_counter", lambda: perf_counter() + offset[0])
+
+    def advance(seconds: float) -> None:
+        offset[0] += seconds
+
+    _stand_in_study(monkeypatch, during=lambda: advance(100.0))
+    write = command.write_feedforward_study
+
+    def slow_write(*args: Any, **kwargs: Any) -> Any:
+        advance(200.0)  # the report and the pictures
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(command, "write_feedforward_study", slow_write)
+    out = tmp_path / "out"
+    assert main([*QUICK, "--no-pictures", "--no-cache", "--out", str(out)]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("total ") and last.endswith(" s"), last
+    assert 300.0 <= float(last.split()[1]) < 360.0, last
+    wall = json.loads((out / "train.json").read_text())["settings"]["wall_seconds"]
+    assert 100.0 <= wall < 160.0
 
 
 def test_presets_and_flags_make_the_study_asked_for() -> None:

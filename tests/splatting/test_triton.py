@@ -338,7 +338,7 @@ def test_compiled_step_has_no_graph_break_and_equals_eager(device: str) -> None:
 def test_backend_triton_without_triton_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(triton_backend, "installed", lambda: False)
     scene = small_scene()
-    with pytest.raises(ImportError, match=r"dego-occupancy\[triton\]"):
+    with pytest.raises(ImportError, match=r"pip install -e \"\.\[triton\]\""):
         render(scene.to(torch.float32), backend="triton")
     auto = render(scene.to(torch.float32), backend="auto")
     assert torch.equal(auto.features, render(scene.to(torch.float32)).features)

@@ -15,6 +15,7 @@ from dego import NUM_CLASSES
 from dego.cli import main
 from tests.helpers.cli_faults import usage_error
 from tests.helpers.evaluation import TOKENS, make_tree
+from tests.helpers.repo import ROOT, needs_source_tree
 from tests.helpers.rrd import column, read_recording
 
 rr = pytest.importorskip("rerun")
@@ -62,7 +63,7 @@ def test_rerun_without_the_extra_is_a_usage_error_naming_it(
     monkeypatch.setitem(sys.modules, "rerun", None)
     monkeypatch.setattr("importlib.util.find_spec", lambda name, *a: None)
     line = usage_error(["demo", "--quick", "--rerun", str(tmp_path / "d.rrd")], capsys)
-    assert 'pip install "dego-occupancy[rerun]"' in line
+    assert 'pip install -e ".[rerun]"' in line
 
 
 def test_eval_limit_needs_rerun(
@@ -158,16 +159,133 @@ def test_view_checks_the_file_and_starts_rerun(
     calls: list[list[str]] = []
     monkeypatch.setattr(viewer.subprocess, "call", lambda argv: calls.append(argv) or 0)
     assert main(["view", str(recording), "--web"]) == 0
-    assert calls == [[sys.executable, "-m", "rerun", str(recording), "--web-viewer"]]
+    web = ["--web-viewer", "--web-viewer-port", "9090", "--port", "9876"]
+    assert calls == [[sys.executable, "-m", "rerun", str(recording), "--bind", "127.0.0.1", *web]]
     monkeypatch.setattr(viewer, "has_screen", lambda: False)
     assert main(["view", str(recording)]) == 1
     assert "--web" in capsys.readouterr().err
     monkeypatch.setattr(viewer, "has_screen", lambda: True)
     assert main(["view", str(recording)]) == 0
-    assert calls[-1] == [sys.executable, "-m", "rerun", str(recording)]
+    assert calls[-1] == [sys.executable, "-m", "rerun", str(recording), "--bind", "127.0.0.1"]
     monkeypatch.setattr("importlib.util.find_spec", lambda name, *a: None)
     assert main(["view", str(recording)]) == 1
-    assert 'pip install "dego-occupancy[rerun]"' in capsys.readouterr().err
+    assert 'pip install -e ".[rerun]"' in capsys.readouterr().err
+
+
+def test_view_serves_this_machine_only_unless_asked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 51: ``dego view --web`` left rerun's servers on its default address, 0.0.0.0
+    (every interface: anyone on the network could read the recording), on fixed ports.
+    Now 127.0.0.1 unless ``--bind`` says otherwise; ``--port`` / ``--grpc-port`` choose
+    the web page's and the recording's ports."""
+    from dego.viz import viewer
+    from dego.viz.rerun import recording_file
+
+    recording = tmp_path / "r.rrd"
+    with recording_file(recording):
+        pass
+    calls: list[list[str]] = []
+    monkeypatch.setattr(viewer.subprocess, "call", lambda argv: calls.append(argv) or 0)
+    monkeypatch.setattr(viewer, "has_screen", lambda: True)
+
+    def rerun_flags(*flags: str) -> list[str]:
+        assert main(["view", str(recording), *flags]) == 0
+        assert calls[-1][:4] == [sys.executable, "-m", "rerun", str(recording)]
+        return calls[-1][4:]
+
+    web = ["--web-viewer", "--web-viewer-port"]
+    assert rerun_flags("--web") == ["--bind", "127.0.0.1", *web, "9090", "--port", "9876"]
+    note = capsys.readouterr().err
+    assert "this machine only (127.0.0.1; over SSH forward ports 9090 and 9876;" in note
+    assert rerun_flags("--web", "--bind", "0.0.0.0", "--port", "8080", "--grpc-port", "8081") == [
+        *("--bind", "0.0.0.0", *web, "8080", "--port", "8081")
+    ]
+    assert "on 0.0.0.0, ports 8080 and 8081" in capsys.readouterr().err
+    assert rerun_flags("--web", "--bind", "::1") == [
+        "--bind",
+        "::1",
+        *web,
+        "9090",
+        "--port",
+        "9876",
+    ]
+    assert rerun_flags() == ["--bind", "127.0.0.1"]  # the native viewer's server too
+    assert rerun_flags("--grpc-port", "9999", "--bind", "0.0.0.0") == [
+        *("--bind", "0.0.0.0", "--port", "9999")
+    ]
+    capsys.readouterr()
+    for flags, words in [
+        (["--web", "--bind", "localhost"], "argument --bind: expected an IP address"),
+        (["--web", "--port", "0"], "argument --port"),
+        (["--web", "--port", "65536"], "argument --port"),
+        (["--grpc-port", "x"], "argument --grpc-port"),
+        (["--port", "8080"], "--port: the web viewer's port, only with --web"),
+    ]:
+        line = usage_error(["view", str(recording), *flags], capsys)
+        assert words in line, line
+    assert len(calls) == 5  # none for the usage errors
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/net/tcp")
+def test_view_web_listens_on_loopback_on_the_ports_asked_for(tmp_path: Path) -> None:
+    """The real rerun: ``dego view --web --port P --grpc-port G`` listens on 127.0.0.1:P and
+    127.0.0.1:G, on no other address (``/proc/net/tcp``'s listening sockets)."""
+    import contextlib
+    import os
+    import signal
+    import socket
+    import subprocess
+    import time
+
+    from dego.viz.rerun import recording_file
+
+    recording = tmp_path / "r.rrd"
+    with recording_file(recording):
+        pass
+    ports = []
+    for _ in range(2):
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            ports.append(probe.getsockname()[1])
+    page, grpc = ports
+    argv = ["view", str(recording), "--web", "--port", str(page), "--grpc-port", str(grpc)]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dego", *argv],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+    def listening() -> set[tuple[str, int]]:
+        found = set()
+        for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+            if not Path(table).exists():
+                continue
+            for row in Path(table).read_text().splitlines()[1:]:
+                local, state = row.split()[1], row.split()[3]
+                address, port = local.split(":")
+                if state == "0A" and int(port, 16) in ports:  # LISTEN
+                    found.add((address, int(port, 16)))
+        return found
+
+    try:
+        deadline = time.monotonic() + 60
+        while {port for _, port in listening()} != set(ports) and time.monotonic() < deadline:
+            assert process.poll() is None, "rerun ended early"
+            time.sleep(0.2)
+        assert listening() == {("0100007F", page), ("0100007F", grpc)}  # 127.0.0.1 only
+    finally:  # dego and the rerun it started: the session's process group
+        os.killpg(process.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 10
+        while listening() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(timeout=max(deadline - time.monotonic(), 0.1))
+        if listening() or process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
 
 
 @pytest.mark.slow
@@ -196,3 +314,14 @@ def test_demo_records_the_clip_and_every_variant(
         np.testing.assert_array_equal(np.bincount(ids, minlength=NUM_CLASSES), expected.numpy())
         pose = column(data, "world/ego", "Transform3D:translation")[index][0]
         np.testing.assert_allclose(pose, frame.ego_pose[:3, 3].numpy(), atol=1e-5)
+
+
+@needs_source_tree
+def test_viewing_page_states_the_default_ports() -> None:
+    from dego.viz.viewer import GRPC_PORT, WEB_VIEWER_PORT
+
+    assert ROOT is not None
+    page = " ".join((ROOT / "docs" / "viewing.md").read_text().split())
+    assert f"(with `--web`, default {WEB_VIEWER_PORT})" in page
+    assert f"(default {GRPC_PORT})" in page
+    assert "127.0.0.1 only" in page

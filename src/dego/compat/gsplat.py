@@ -226,7 +226,7 @@ def rasterization(
             0.999, so both entry points give the same images; pass ``"1.5"`` for gsplat
             1.5's radii.
         backend: dego's compositing: ``"torch"`` (any device), ``"triton"`` (the Triton
-            kernels, CUDA; ``pip install "dego-occupancy[triton]"``) or ``"auto"`` (Triton
+            kernels, CUDA; ``pip install -e ".[triton]"``) or ``"auto"`` (Triton
             when usable, else torch); see :func:`dego.splat`. gsplat's own kernels are not
             offered here: this adapter is for code that runs without gsplat.
         **rest: gsplat's other keywords: ``channel_chunk`` and ``segmented`` are accepted

@@ -16,7 +16,7 @@ metric whose state was shared with (``MetricCollection(compute_groups=[[...]])``
 with (``merge_state``), synced with (another rank) or loaded from another configuration
 raises ``ValueError`` naming both configurations when it computes.
 
-torchmetrics is an optional dependency: ``pip install "dego-occupancy[torchmetrics]"``
+torchmetrics is an optional dependency: ``pip install -e ".[torchmetrics]"`` from the clone
 (``[lightning]`` adds Lightning).
 """
 
@@ -37,7 +37,7 @@ try:
 except ModuleNotFoundError as err:  # pragma: no cover - exercised without the extra
     raise ModuleNotFoundError(
         "dego.compat.torchmetrics needs torchmetrics: "
-        'pip install "dego-occupancy[torchmetrics]" (or "torchmetrics>=1.3")',
+        'pip install -e ".[torchmetrics]" in your dego clone (or "torchmetrics>=1.3")',
         name=err.name,
     ) from err
 

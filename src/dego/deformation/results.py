@@ -16,7 +16,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from dego import _serialization
-from dego._typing import check_tensor_fields, typechecked
+from dego._typing import check_tensor_fields, literal_error, typechecked
 from dego.deformation.loss import REDUCTIONS, DeformationLoss, DeformationLossWeights
 from dego.deformation.presets import PARAMETERS, PRESETS, Preset
 from dego.gaussians import GaussianSet
@@ -69,6 +69,8 @@ class DeformationOutput(_serialization.DictForm):
     canonical_last: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.preset, str) or self.preset not in PRESETS:
+            raise literal_error("DeformationOutput()", "preset", self.preset, tuple(PRESETS))
         check_tensor_fields(self)
 
     @property

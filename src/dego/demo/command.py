@@ -402,7 +402,7 @@ def _pictures(
         from dego.demo.pictures import bev_figure, camera_figure, loss_figure
         from dego.viz import png_bytes
     except ImportError:
-        print('pictures skipped: they need matplotlib (pip install "dego-occupancy[viz]")')
+        print('pictures skipped: they need matplotlib (pip install -e ".[viz]" in your dego clone)')
         return {}
     last = clip.num_frames - 1
     pictures = {

@@ -1,6 +1,6 @@
 """The demo's pictures: BEV prediction vs ground truth, one camera's renders, loss curves.
 
-Needs matplotlib (``pip install "dego-occupancy[viz]"``). Each ``*_figure`` function
+Needs matplotlib (``pip install -e ".[viz]"`` from the clone). Each ``*_figure`` function
 draws a Figure; :func:`png_bytes` (from :mod:`dego.viz`) encodes one, so that ``dego demo``
 writes its pictures with its results, all or nothing (:func:`dego._atomic.write_files`);
 each ``*_picture`` function writes one PNG file atomically.

@@ -228,7 +228,8 @@ def _check_reports(args: argparse.Namespace, created: list[Path]) -> str | None:
 
 
 def _run(args: argparse.Namespace, created: list[Path]) -> int:
-    apply_threads(args.threads)
+    # under dego.cli --threads auto is resolved already (a count or None): one note
+    args.threads = apply_threads(args.threads, quiet=args.quiet)
     is_rank0 = os.environ.get("RANK", "0") == "0"
     problem = _check_reports(args, created)
     if problem is not None:

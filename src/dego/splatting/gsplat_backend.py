@@ -1,4 +1,4 @@
-"""Optional dispatch to gsplat's CUDA rasteriser (``pip install "dego-occupancy[gsplat]"``).
+"""Optional dispatch to gsplat's CUDA rasteriser (``pip install -e ".[gsplat]"``).
 
 gsplat compiles its compositing constants (max alpha, alpha threshold 1/255,
 transmittance threshold 1e-4) and its radius rule into the kernels, so it is only used
@@ -80,7 +80,7 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
     reasons = []
     version = installed_version()
     if version is None:
-        reasons.append("gsplat is not installed (pip install 'dego-occupancy[gsplat]')")
+        reasons.append("gsplat is not installed (pip install -e '.[gsplat]' in your dego clone)")
     elif version < MIN_VERSION:
         reasons.append(
             f"gsplat {version[0]}.{version[1]} is older than {MIN_VERSION[0]}.{MIN_VERSION[1]} "

@@ -93,9 +93,9 @@ def splat(
             train with), or ``"none"``; z is the camera z of the Gaussian's mean.
         backend: ``"torch"`` (this implementation, any device, any float dtype),
             ``"triton"`` (dego's Triton compositing kernels: CUDA tensors, float32 inside,
-            no C++ build; needs ``pip install "dego-occupancy[triton]"``; float64 renders
+            no C++ build; needs ``pip install -e ".[triton]"``; float64 renders
             with the torch path), ``"gsplat"`` (gsplat's CUDA rasteriser, needs
-            ``pip install "dego-occupancy[gsplat]"`` and CUDA tensors) or ``"auto"`` (in
+            ``pip install -e ".[gsplat]"`` and CUDA tensors) or ``"auto"`` (in
             order: gsplat when it is usable and the settings match its compiled constants,
             Triton on CUDA when installed and its kernels compile there, else the torch
             path; never Triton on CPU).

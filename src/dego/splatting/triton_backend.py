@@ -2,7 +2,7 @@
 of int64 keys and Triton kernels for the compositing (:mod:`dego.splatting.triton_kernels`),
 forward and backward. No C++ build: Triton compiles for the GPU present at first use.
 
-Needs ``pip install "dego-occupancy[triton]"`` and CUDA tensors (NVIDIA, or AMD through
+Needs ``pip install -e ".[triton]"`` (in a clone) and CUDA tensors (NVIDIA, or AMD through
 Triton's ROCm backend), float32 (float16 / bfloat16 inputs are computed in float32);
 float64 stays on the torch path. With ``TRITON_INTERPRET=1`` set before dego first uses
 Triton, ``backend="triton"`` also runs on CPU tensors through Triton's interpreter (slow:
@@ -38,7 +38,7 @@ CUSTOM_OPS = hasattr(torch.library, "custom_op")
 if CUSTOM_OPS:
     from dego.splatting.triton_ops import tile_lists
 
-INSTALL = "pip install 'dego-occupancy[triton]'"
+INSTALL = 'pip install -e ".[triton]" in your dego clone'
 
 # Per device ("cuda:0", "cpu"): None when the kernels compiled and ran there, else why not.
 _PROBED: dict[str, str | None] = {}
@@ -66,7 +66,7 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
         return False
     if not installed():
         if strict:
-            raise ImportError(f"backend: 'triton' needs triton ({INSTALL})")
+            raise ImportError(_missing_triton(gaussians.device))
         return False
     if not CUSTOM_OPS:
         if strict:
@@ -102,6 +102,23 @@ def usable(gaussians: GaussianSet, config: SplatConfig, *, strict: bool) -> bool
     if strict:
         raise RuntimeError(f"backend: 'triton' cannot run on {_device_name(device)}: {failure}")
     return False
+
+
+def _missing_triton(device: torch.device) -> str:
+    """Why ``backend="triton"`` cannot run without the triton package: both of its
+    requirements, and what ``device`` (the tensors') lacks besides."""
+    message = (
+        f"backend: 'triton' needs two things: the triton package ({INSTALL}) and CUDA "
+        "tensors on an NVIDIA GPU (or an AMD GPU through ROCm), or, for CPU tensors, "
+        "Triton's interpreter (TRITON_INTERPRET=1 set before dego first uses Triton; slow, "
+        "for tests); triton is not installed"
+    )
+    if device.type != "cuda":
+        message += (
+            f" and the tensors are on {device} (backend='torch' or 'auto' renders them "
+            "without triton)"
+        )
+    return message
 
 
 def _runs_on(device: torch.device, strict: bool) -> bool:

@@ -15,6 +15,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from dego import _serialization
+from dego._typing import device_hint
 from dego.splatting.projection import RADIUS_SIGMA, Projection, RadiusRule, RasterizeMode
 
 DepthMode = Literal["expected", "accumulated", "none"]
@@ -134,7 +135,10 @@ class SplatConfig:
         ]
         for name, ok, expected in checks:
             if not ok:
-                raise ValueError(f"{name}: expected {expected}, got {getattr(self, name)!r}")
+                value = getattr(self, name)
+                raise ValueError(
+                    f"{name}: expected {expected}, got {value!r}{device_hint(name, value)}"
+                )
         for name in ("near", "far", "eps2d", "radius_sigma", "radius_clip"):
             value = getattr(self, name)
             if value is not None and math.isnan(value):

@@ -23,8 +23,8 @@ else:  # matplotlib is optional and imported inside the functions; the run-time 
 
 
 _INSTALL_HINT = (
-    'dego.viz needs matplotlib, an optional dependency: pip install "dego-occupancy[viz]" '
-    '(or pip install "matplotlib>=3.7")'
+    'dego.viz needs matplotlib, an optional dependency: pip install -e ".[viz]" in your dego '
+    'clone (or pip install "matplotlib>=3.7")'
 )
 
 

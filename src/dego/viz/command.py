@@ -10,6 +10,7 @@ and :func:`run_eval_recording`.
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import os
 import sys
 import time
@@ -18,6 +19,7 @@ from pathlib import Path
 
 from dego._cli_args import bounded_int, rerun_target
 from dego.viz.eval_recording import DEFAULT_LIMIT, MAX_RECORDED_SAMPLES
+from dego.viz.viewer import GRPC_PORT, LOCAL_BIND, WEB_VIEWER_PORT
 
 DESCRIPTION = (
     "Open a rerun recording in rerun's viewer: the native viewer where there is a screen, "
@@ -26,11 +28,49 @@ DESCRIPTION = (
 EPILOG = None
 
 
+def ip_address(text: str) -> str:
+    """An argparse type: an IPv4 or IPv6 address (what rerun's ``--bind`` takes), as given."""
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected an IP address such as 127.0.0.1 or 0.0.0.0, got {text!r}"
+        ) from None
+    return text
+
+
+ip_address.__name__ = "address"
+
+PORT = bounded_int(1, 65535)
+"""An argparse type: a TCP port."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dego view`` (on an existing (sub)parser)."""
     parser.add_argument("file", type=Path, metavar="FILE.rrd", help="the recording")
     parser.add_argument(
         "--web", action="store_true", help="serve rerun's web viewer instead (headless, SSH)"
+    )
+    parser.add_argument(
+        "--bind",
+        type=ip_address,
+        default=LOCAL_BIND,
+        metavar="ADDR",
+        help="the address rerun's servers listen on (127.0.0.1: this machine only, reached "
+        "over SSH by forwarding the ports; 0.0.0.0: every interface, anyone on the network)",
+    )
+    parser.add_argument(
+        "--port",
+        type=PORT,
+        metavar="N",
+        help=f"with --web: the web viewer page's port ({WEB_VIEWER_PORT})",
+    )
+    parser.add_argument(
+        "--grpc-port",
+        type=PORT,
+        metavar="N",
+        help=f"the port the viewer streams the recording from ({GRPC_PORT}); with --web the "
+        "browser connects to it too",
     )
     return parser
 
@@ -38,16 +78,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 def run_command(
     args: argparse.Namespace, parser: argparse.ArgumentParser, created: list[Path]
 ) -> int:
-    """``dego view FILE.rrd [--web]``: open the recording; 1 with one line where no viewer
-    can start here."""
+    """``dego view FILE.rrd [--web] [--bind ADDR] [--port N] [--grpc-port N]``: open the
+    recording; 1 with one line where no viewer can start here."""
     from dego.viz.viewer import ViewerUnavailableError, check_recording, open_viewer
 
+    if args.port is not None and not args.web:
+        parser.error("--port: the web viewer's port, only with --web")
     try:
         check_recording(args.file)
     except ValueError as error:
         parser.error(str(error))
     try:
-        return open_viewer(args.file, web=args.web)
+        return open_viewer(
+            args.file, web=args.web, bind=args.bind, port=args.port, grpc_port=args.grpc_port
+        )
     except ViewerUnavailableError as error:
         print(f"dego view: {error}", file=sys.stderr)
         return 1

@@ -83,8 +83,8 @@ MIN_RERUN = "0.24"
 """The oldest rerun-sdk the extra allows (the tests run the newest in the registry)."""
 
 _INSTALL_HINT = (
-    'dego.viz.rerun needs rerun-sdk, an optional dependency: pip install "dego-occupancy[rerun]" '
-    f'(or pip install "rerun-sdk>={MIN_RERUN}")'
+    'dego.viz.rerun needs rerun-sdk, an optional dependency: pip install -e ".[rerun]" in your '
+    f'dego clone (or pip install "rerun-sdk>={MIN_RERUN}")'
 )
 
 

@@ -88,8 +88,9 @@ def study_figure(runs: Sequence[StudyRun]) -> Any:
     if with_intervals:
         right.set_title(f"{HEADLINE}, paired by seed, 95% CI", fontsize=9)
     else:  # as the report: no interval below MIN_INTERVAL_SEEDS seeds, so none is drawn
+        # two lines: on one it ran past the figure's right edge (issue 51)
         right.set_title(
-            f"{HEADLINE}, paired by seed; means of {seeds} seed(s), no interval "
+            f"{HEADLINE}, paired by seed;\nmeans of {seeds} seed(s), no interval "
             f"(needs {MIN_INTERVAL_SEEDS}+)",
             fontsize=9,
         )
