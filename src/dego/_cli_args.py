@@ -24,6 +24,7 @@ import torch
 
 from dego._atomic import check_output_file, check_output_files, make_output_dir, same_file
 from dego._checks import repeated_values
+from dego._cores import usable_cores
 
 INTERRUPTED_STATUS = 130
 """Exit status after Ctrl-C (128 + SIGINT, as shells report it)."""
@@ -222,14 +223,6 @@ def machine_load() -> float | None:
         return os.getloadavg()[0]
     except (AttributeError, OSError):
         return None
-
-
-def usable_cores() -> int:
-    """The CPUs this process may run on (its affinity where the system has one)."""
-    try:
-        return len(os.sched_getaffinity(0)) or 1
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def parse_threads(text: str) -> int | str:

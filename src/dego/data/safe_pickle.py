@@ -49,7 +49,7 @@ import struct
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar, cast
+from typing import Any, ClassVar, NoReturn, cast
 
 import numpy as np
 
@@ -107,13 +107,11 @@ class _Budget:
         self.left = budget(size)
         self.size = size
 
-    def charge(self, nbytes: int, what: str) -> None:
-        if nbytes > self.left:
-            raise UnsafePickleError(
-                f"refused {what}: {nbytes:,} bytes where {max(self.left, 0):,} of the "
-                f"{budget(self.size):,} a {self.size:,}-byte file may build remain"
-            )
-        self.left -= nbytes
+    def refuse(self, nbytes: int, what: str) -> NoReturn:
+        raise UnsafePickleError(
+            f"refused {what}: {nbytes:,} bytes where {max(self.left, 0):,} of the "
+            f"{budget(self.size):,} a {self.size:,}-byte file may build remain"
+        )
 
 
 def _charge(nbytes: int, what: str, count: int) -> None:
@@ -121,7 +119,7 @@ def _charge(nbytes: int, what: str, count: int) -> None:
     current: _Budget | None = getattr(_LOAD, "budget", None)
     if current is not None:  # outside a load (a user's call later on): nothing to bound
         if nbytes > current.left:
-            current.charge(nbytes, what.format(count))
+            current.refuse(nbytes, what.format(count))
         current.left -= nbytes
 
 
@@ -512,16 +510,22 @@ def _refuse_persistent_id(path: Path, pid: Any) -> Any:
 # -- the two unpicklers ------------------------------------------------------------------
 
 
-class _FastUnpickler(pickle.Unpickler):  # the C one: run only on a scanned file
-    def __init__(self, file: Any, path: Path) -> None:
-        super().__init__(file)
-        self._path = path
+class _AllowList:
+    """What both unpicklers resolve: allowed globals only, no persistent ids."""
+
+    _path: Path
 
     def find_class(self, module: str, name: str) -> Any:
         return _allowed(self._path, module, name)
 
     def persistent_load(self, pid: Any) -> Any:
         return _refuse_persistent_id(self._path, pid)
+
+
+class _FastUnpickler(_AllowList, pickle.Unpickler):  # the C one: run only on a scanned file
+    def __init__(self, file: Any, path: Path) -> None:
+        super().__init__(file)
+        self._path = path
 
 
 class _BoundedFile:
@@ -549,18 +553,12 @@ class _BoundedFile:
         return cast(int, self._stream.tell())
 
 
-class _PythonUnpickler(pickle._Unpickler):  # the pure-Python one: its memo is a dict
+class _PythonUnpickler(_AllowList, pickle._Unpickler):  # the pure-Python one: memo a dict
     def __init__(self, file: Any, path: Path, size: int) -> None:
         self._bounded = _BoundedFile(file, size)
         super().__init__(self._bounded)
         self._path = path
         self._tuple_nodes: dict[int, tuple[Any, int]] = {}  # id -> (tuple, nodes)
-
-    def find_class(self, module: str, name: str) -> Any:
-        return _allowed(self._path, module, name)
-
-    def persistent_load(self, pid: Any) -> Any:
-        return _refuse_persistent_id(self._path, pid)
 
     def _count_nodes(self) -> None:
         """The tuple (or frozenset) just built: its nodes, counting shared ones as often as
@@ -603,10 +601,6 @@ _CORRUPT = (
     UnicodeError,
     ImportError,
 )
-
-ENGINES = ("auto", "c", "python")
-"""``c``: numba's scan, then the C unpickler; ``python``: the pure-Python unpickler;
-``auto``: ``c`` where numba is installed."""
 
 
 def _read(file: Path, stream: Any, engine: str) -> Any:
@@ -657,6 +651,9 @@ def load_pickle(path: PathLike) -> object:
 
 
 def _load(file: Path, engine: str) -> object:
+    """:func:`load_pickle` with the unpickler ``engine`` names: ``"c"`` (numba's scan, then
+    the C unpickler), ``"python"`` (the pure-Python unpickler) or ``"auto"`` (``"c"`` where
+    numba is installed)."""
     if not file.exists():
         raise FileNotFoundError(f"{file}: no such pickle file")
     if file.is_dir():

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import ast
 import inspect
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,13 +15,6 @@ import torch
 
 from dego.evaluation.errors import EvaluationSetupError, list_tokens
 from dego.metrics.counts import gathered_if_different
-
-
-def _cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def _stop(processes: Sequence[Any]) -> None:

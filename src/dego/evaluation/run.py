@@ -35,6 +35,7 @@ import torch.distributed as dist
 import torch.multiprocessing as torch_mp
 
 from dego._checks import check_int
+from dego._cores import usable_cores
 from dego._typing import typechecked
 from dego._version import __version__
 from dego.evaluation.benchmarks import DEFAULT_BENCHMARK, MAVE_VARIANTS, Benchmark, get_benchmark
@@ -62,7 +63,6 @@ from dego.evaluation.predictions import (
 )
 from dego.evaluation.processes import (
     _check_plans_agree,
-    _cpus,
     _exit_message,
     _stop,
     _unguarded_main_line,
@@ -591,7 +591,7 @@ def _worker(
     workers, which print nothing."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if "OMP_NUM_THREADS" not in os.environ:  # dego eval --threads N sets it for the workers
-        torch.set_num_threads(max(1, _cpus() // world_size))
+        torch.set_num_threads(max(1, usable_cores() // world_size))
     dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=world_size)
     try:
         on_sample = (lambda: events.put(("tick", rank))) if report_progress else None
@@ -752,7 +752,7 @@ def evaluate(
     if distributed and not dist.is_initialized():
         if "OMP_NUM_THREADS" not in os.environ:
             local = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ["WORLD_SIZE"]))
-            torch.set_num_threads(max(1, _cpus() // max(local, 1)))
+            torch.set_num_threads(max(1, usable_cores() // max(local, 1)))
         dist.init_process_group("gloo", init_method="env://")
         created_group = True
     try:
