@@ -15,6 +15,7 @@ import dego.demo.study.command
 from dego.cli import main
 from dego.evaluation import command as eval_command
 from tests.helpers.cli_faults import usage_error
+from tests.helpers.repo import ROOT, needs_source_tree
 
 
 @pytest.fixture
@@ -236,3 +237,13 @@ def test_an_idle_machine_keeps_torchs_threads_and_quiet_silences_the_note(
     assert main(["eval", "--gt", "g", "--pred", "p", "--quiet"]) == 2
     assert "threads" not in capsys.readouterr().err
     assert seen == [(2, None), (1, "1")]
+
+
+@needs_source_tree
+def test_the_documented_threshold_is_the_code_s() -> None:
+    from dego._cli_args import BUSY_MARGIN, THREADS_HELP
+
+    assert ROOT is not None
+    page = " ".join((ROOT / "docs" / "performance.md").read_text().split())
+    assert f"minus {BUSY_MARGIN}" in page and f"cores - {BUSY_MARGIN}" in page
+    assert f"cores - {BUSY_MARGIN}" in THREADS_HELP

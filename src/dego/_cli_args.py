@@ -198,7 +198,8 @@ were 1.2-3.8x slower than 1; at a load of 0.4-0.6 they were as fast or 1.7x fast
 
 THREADS_HELP = (
     "CPU threads per process (torch.set_num_threads), or auto (the default): 1 when other "
-    "jobs keep the machine busy (1-minute load average >= cores - 1.2), torch's default (one "
+    f"jobs keep the machine busy (1-minute load average >= cores - {BUSY_MARGIN}), torch's "
+    "default (one "
     "per core) otherwise; auto prints a note when it picks 1, and leaves the threads alone "
     "where OMP_NUM_THREADS is set or the load is unknown (Windows). On a shared machine 1 "
     "is often several times faster: torch's threads otherwise wait for each other "
