@@ -29,7 +29,7 @@ import torch
 from dego import GaussianSet, splat
 from dego.splatting import triton_backend
 
-from harness import benchmark_parser, median_seconds, peak_memory_mib
+from harness import benchmark_parser, median_seconds, peak_memory_mib, splat_versions
 from scenes import occ3d_gaussians, surround_rig
 
 COUNTS = (10_000, 50_000, 200_000)
@@ -106,8 +106,7 @@ def main() -> None:
     device = torch.device(args.device)
     backends = [b for b in args.backends.split(",") if b]
     counts, sizes, channels = QUICK if args.quick else (COUNTS, SIZES, CHANNELS)
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {name}")
+    print(splat_versions(device))
     reasons = {b: available(b, device) for b in backends}
     for backend, reason in reasons.items():
         if reason:

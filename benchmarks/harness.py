@@ -157,6 +157,42 @@ def print_comparison(
         )
 
 
+def splat_versions(device: torch.device) -> str:
+    """One line naming what a splatting benchmark compares: torch, the device, triton and
+    the launch settings dego's kernels use there, and gsplat's version (``gsplat.__version__``
+    as installed: a release such as ``1.5.3``, or a build from its main branch, whose
+    forward differs; see docs/performance.md)."""
+    import importlib.metadata
+
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else str(device)
+    parts = [f"torch {torch.__version__}", f"threads {torch.get_num_threads()}", f"device {name}"]
+    try:
+        import triton
+    except ImportError:
+        parts.append("triton not installed")
+    else:
+        from dego.splatting import triton_configs
+
+        settings = "autotuned" if triton_configs.autotuning() else "table"
+        if device.type == "cuda":
+            family = triton_configs.family(device)
+            config = triton_configs.TABLE.get(family, triton_configs.SAFE)
+            settings = f"{family}: {config}" if settings == "table" else settings
+        parts.append(f"triton {triton.__version__} ({settings})")
+    try:
+        import gsplat
+    except ImportError:
+        parts.append("gsplat not installed")
+    else:
+        try:
+            distribution = importlib.metadata.version("gsplat")
+        except importlib.metadata.PackageNotFoundError:
+            distribution = "no distribution metadata"
+        where = Path(gsplat.__file__).parent
+        parts.append(f"gsplat {gsplat.__version__} ({distribution}, {where})")
+    return ", ".join(parts)
+
+
 def benchmark_parser(doc: str, *, repeats: int) -> argparse.ArgumentParser:
     """Argument parser with the options every benchmark shares: ``--device``, ``--repeats``."""
     parser = argparse.ArgumentParser(description=doc.strip().splitlines()[0])

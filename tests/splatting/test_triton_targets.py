@@ -1,7 +1,10 @@
 """The Triton kernels compile for real GPUs, ahead of time, without one: an NVIDIA H200 /
-H100 (sm_90), an A100 (sm_80) and an AMD MI300 (gfx942). Triton's interpreter (the other
-tests' CPU path) accepts programs its compiler rejects, so this is the CI check that the
-kernels are valid GPU code. Runs in a subprocess: the interpreter must be off there."""
+H100 (sm_90), an A100 (sm_80) and an AMD MI300 (gfx942), each at its shipped launch
+configuration; and the compiler's own report for sm_90 and sm_80 (no register spill, the
+backward at <= 168 registers a thread). Triton's interpreter (the other tests' CPU path)
+accepts programs its compiler rejects, so this is the CI check that the kernels are valid
+GPU code. Runs ``benchmarks/triton_registers.py`` in a subprocess: the interpreter must be
+off there."""
 
 from __future__ import annotations
 
@@ -10,6 +13,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -18,42 +22,30 @@ pytestmark = [
     pytest.mark.slow,
 ]
 
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+BACKWARD_REGISTERS = 168
+"""The goal for the backward's kernels on sm_90 and sm_80 (the old one: 255, and spilled)."""
+KERNELS = ("_forward_kernel", "_backward_kernel (sums)", "_scan_kernel", "_backward_kernel")
+
 COMPILE = r"""
-import inspect, json, sys
-import triton
-from triton.backends.compiler import GPUTarget
-from triton.compiler import ASTSource
-from dego.splatting import triton_kernels as kernels
-
-INDEX = {"pairs_ptr", "starts_ptr", "counts_ptr"}
-COUNTS = {"tiles_x", "tiles_per_image", "dim"}
-
-def argument_type(name):
-    if name in INDEX:
-        return "*i64"
-    if name == "stop_ptr":
-        return "*i32"
-    if name.endswith("_ptr"):
-        return "*fp32"
-    return "i32" if name in COUNTS else "fp32"
+import json, sys
+sys.path.insert(0, sys.argv[4])
+import triton_registers
+from dego.splatting import triton_configs
 
 backend, arch, warp = sys.argv[1], sys.argv[2], int(sys.argv[3])
-target = GPUTarget(backend, int(arch) if arch.isdigit() else arch, warp)
-built = {}
-for kernel, extra in ((kernels._forward_kernel, {}), (kernels._backward_kernel, {"ABSGRAD": True})):
-    constants = {"S": 16, "PIX": 256, "BLOCK_G": kernels.BLOCK_G, "BLOCK_D": kernels.BLOCK_D, **extra}
-    names = list(inspect.signature(kernel.fn).parameters)
-    signature = {n: "constexpr" if n in constants else argument_type(n) for n in names}
-    source = ASTSource(
-        fn=kernel,
-        signature=signature,
-        constexprs={(names.index(k),): v for k, v in constants.items()},
-    )
-    options = {"num_warps": kernels.NUM_WARPS, "enable_fp_fusion": kernels.FP_FUSION}
-    compiled = triton.compile(source, target=target, options=options)
-    built[kernel.fn.__name__] = sorted(compiled.asm)
-print(json.dumps(built))
+family = f"sm_{arch}" if backend == "cuda" else arch
+config = triton_configs.TABLE[family]
+built = triton_registers.compile_kernels(int(arch) if arch.isdigit() else arch, config, backend, warp)
+print(json.dumps({name: sorted(kernel.asm) for name, kernel in built.items()}))
 """
+
+
+def _run(*command: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    return subprocess.run(
+        [sys.executable, *command], capture_output=True, text=True, env=env, timeout=600
+    )
 
 
 @pytest.mark.parametrize(
@@ -66,17 +58,27 @@ print(json.dumps(built))
     ids=["sm_90", "sm_80", "gfx942"],
 )
 def test_the_kernels_compile_for_gpus(backend: str, arch: str, warp: str, binary: str) -> None:
-    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
-    done = subprocess.run(
-        [sys.executable, "-c", COMPILE, backend, arch, warp],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    done = _run("-c", COMPILE, backend, arch, warp, str(BENCHMARKS))
     assert done.returncode == 0, done.stderr[-3000:]
     assert "FP_FUSION" not in done.stderr  # the option is passed, not left to warn
     built = json.loads(done.stdout.strip().splitlines()[-1])
-    assert set(built) == {"_forward_kernel", "_backward_kernel"}
+    assert set(built) == set(KERNELS)
     for stages in built.values():
         assert binary in stages
+
+
+def test_the_compiler_reports_no_spill_at_the_shipped_configurations() -> None:
+    done = _run(str(BENCHMARKS / "triton_registers.py"), "--arch", "90", "80", "--json")
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = json.loads(done.stdout.strip().splitlines()[-1])
+    assert {(r["arch"], r["kernel"]) for r in rows} == {
+        (arch, kernel) for arch in ("sm_90", "sm_80") for kernel in KERNELS
+    }
+    for row in rows:
+        print(
+            f"{row['arch']} {row['kernel']}: {row['registers']} registers, {row['stack']} B stack"
+        )
+        assert row["spill_stores"] == 0 and row["stack"] == 0 and row["local"] == 0, row
+        assert 0 < row["registers"] <= 255, row
+        if row["kernel"] != "_forward_kernel":
+            assert row["registers"] <= BACKWARD_REGISTERS, row

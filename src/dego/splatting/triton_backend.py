@@ -239,7 +239,7 @@ class _Composite(torch.autograd.Function):
         tiles, transmittance, stop = triton_kernels.forward(
             means2d, conics, opacities, colors, lists, tile_size, rules
         )
-        ctx.save_for_backward(means2d, conics, opacities, colors, transmittance, stop)
+        ctx.save_for_backward(means2d, conics, opacities, colors, stop)
         # the lists hold no gradient: kept as they are, not as saved tensors
         ctx.lists, ctx.rules, ctx.sink = lists, rules, absgrad_sink
         return tiles, transmittance
@@ -248,9 +248,9 @@ class _Composite(torch.autograd.Function):
     def backward(ctx: Any, grad_tiles: Tensor, grad_t: Tensor) -> tuple[Tensor | None, ...]:
         from dego.splatting import triton_kernels
 
-        means2d, conics, opacities, colors, transmittance, stop = ctx.saved_tensors
+        means2d, conics, opacities, colors, stop = ctx.saved_tensors
         grads = triton_kernels.backward(
-            *(means2d, conics, opacities, colors, ctx.lists, transmittance, stop),
+            *(means2d, conics, opacities, colors, ctx.lists, stop),
             *(grad_tiles, grad_t, ctx.rules, ctx.sink is not None),
         )
         if ctx.sink is not None:

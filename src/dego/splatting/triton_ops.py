@@ -93,7 +93,6 @@ def _rasterize_backward(
     conics: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    transmittance: Tensor,
     stop: Tensor,
     grad_tiles: Tensor,
     grad_transmittance: Tensor,
@@ -109,7 +108,7 @@ def _rasterize_backward(
         bin_means2d, bin_extents, bin_depths, bin_conics, bin_max_sigma, height, width, tile_size
     )
     grads = triton_kernels.backward(
-        *(means2d, conics, opacities, colors, lists, transmittance, stop),
+        *(means2d, conics, opacities, colors, lists, stop),
         *(grad_tiles, grad_transmittance, (max_alpha, alpha_min, 0.0), False),
     )
     return grads[0], grads[1], grads[2], grads[3]
@@ -122,8 +121,7 @@ def _(*args: Any) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 
 
 def _setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Tensor, ...]) -> None:
-    _, transmittance, stop = output
-    ctx.save_for_backward(*inputs[:9], transmittance, stop)
+    ctx.save_for_backward(*inputs[:9], output[2])  # and stop
     ctx.options = inputs[9:14]  # height, width, tile_size, max_alpha, alpha_min
 
 
