@@ -212,8 +212,10 @@ def run(
 
 
 def _out_of_resources(error: Exception) -> bool:
-    from triton.runtime.errors import OutOfResources
-
+    try:
+        from triton.runtime.errors import OutOfResources
+    except ImportError:  # no triton: nothing it launched can have run out
+        return False
     return isinstance(error, OutOfResources)
 
 
