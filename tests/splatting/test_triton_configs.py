@@ -88,6 +88,7 @@ def test_an_unknown_gpu_gets_the_safe_default_and_one_warning(
     ("field", "value"),
     [
         ("forward_warps", 3),
+        ("forward_warps", True),
         ("backward_warps", 64),
         ("channels", 8),
         ("pixels", 48),
@@ -185,6 +186,7 @@ def test_the_autotuner_resets_every_buffer_the_backward_accumulates_into() -> No
     tuned = triton_configs._autotuned(triton_kernels._backward_kernel, backward=True)
     assert set(tuned.reset_to_zero) == targets
     assert {c.kwargs["BLOCK_P"] for c in tuned.configs} == {32, 64, 128}
+    assert tuned.keys == ["dim", "S", "SUMS"]
     forward = triton_configs._autotuned(triton_kernels._forward_kernel, backward=False)
     assert forward.reset_to_zero == []  # the forward only stores
     assert {c.kwargs["BLOCK_D"] for c in forward.configs} == {16, 32, 64}
@@ -212,3 +214,44 @@ def test_the_environment_turns_autotune_on_and_the_module_does_not_import_triton
             [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
         )
         assert done.stdout.split() == expected.split()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(triton.why_not("cpu") is not None, reason=triton.why_not("cpu") or "")
+def test_the_autotuned_path_gives_the_tables_gradients(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The autotuner's path end to end in the interpreter, its timer replaced (nothing is
+    timed; trials are ranked by a fixed rule): every trial runs the kernels into the same
+    buffers, so without ``reset_to_zero`` the gradients would come back summed over the
+    trials."""
+    from tests.splatting import test_triton as cases
+
+    scene = cases._deep_stack("cpu")
+    table = cases._screen_gradients(scene, backend="triton")
+    trials: list[int] = []
+
+    def ranked(fn: Any, quantiles: Any = None, **kwargs: Any) -> list[float]:
+        fn()
+        trials.append(1)
+        return [float(len(trials) % 5), 0.0, 0.0]
+
+    build = triton_configs._autotuned
+
+    def autotuned(kernel: Any, backward: bool) -> Any:
+        tuned = build(kernel, backward)
+        tuned.do_bench = ranked  # a fresh autotuner (``_tuned`` is emptied below)
+        return tuned
+
+    run = triton_configs.run
+
+    def as_on_a_gpu(*args: Any, device: torch.device, **kwargs: Any) -> None:
+        run(*args, device=torch.device("cuda"), **kwargs)  # the autotuner runs on CUDA only
+
+    monkeypatch.setattr(triton_configs, "_tuned", {})
+    monkeypatch.setattr(triton_configs, "_autotuned", autotuned)
+    monkeypatch.setattr(triton_configs, "run", as_on_a_gpu)
+    triton_configs.autotune()
+    tuned = cases._screen_gradients(scene, backend="triton")
+    assert len(trials) > 6  # every kernel tried several settings
+    for name, grad in table.items():
+        assert grad is not None
+        assert cases._relative(tuned[name], grad) <= 1e-5, name

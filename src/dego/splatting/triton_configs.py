@@ -5,13 +5,14 @@ The table holds one :class:`LaunchConfig` per family: ``"sm_90"`` (H100, H200), 
 (A100), ``"gfx942"`` (MI300) and ``"cpu"`` (Triton's interpreter, which runs each
 program in Python: a whole tile per backward program there). The NVIDIA entries are
 those at which Triton's compiler reports no register spill (``tests/splatting/
-test_triton_registers.py`` checks it; docs/performance.md lists the registers); none was
+test_triton_targets.py`` checks it; docs/performance.md lists the registers); none was
 timed on a GPU yet. A GPU without an entry runs :data:`SAFE` and is warned once, as is a
 GPU whose entry does not fit it (the compiler runs out of registers or shared memory).
 
 ``autotune(True)`` (or ``DEGO_TRITON_AUTOTUNE=1`` in the environment) times a few settings
 on the first call for each channel count and keeps the fastest; every buffer the backward
-accumulates into is zeroed before each trial (``reset_to_zero``). Tests never autotune.
+accumulates into is zeroed before each trial (``reset_to_zero``). Tests never time
+anything: one runs the autotuner's path in Triton's interpreter with its timer replaced.
 Importing this module does not import triton.
 """
 
@@ -58,19 +59,17 @@ class LaunchConfig:
     def __post_init__(self) -> None:
         for name in ("forward_warps", "backward_warps"):
             value = getattr(self, name)
-            if not (isinstance(value, int) and value in (1, 2, 4, 8, 16, 32)):
+            if not (_integer(value) and value in (1, 2, 4, 8, 16, 32)):
                 raise ValueError(
                     f"LaunchConfig: {name}: expected 1, 2, 4, 8, 16 or 32, got {value!r}"
                 )
         for name in ("channels", "pixels", "bucket"):
             value = getattr(self, name)
-            if not (isinstance(value, int) and value in _POWERS):
+            if not (_integer(value) and value in _POWERS):
                 raise ValueError(
                     f"LaunchConfig: {name}: expected a power of two from 16 to 256, got {value!r}"
                 )
-        if self.maxnreg is not None and not (
-            isinstance(self.maxnreg, int) and 32 <= self.maxnreg <= 255
-        ):
+        if self.maxnreg is not None and not (_integer(self.maxnreg) and 32 <= self.maxnreg <= 255):
             raise ValueError(
                 f"LaunchConfig: maxnreg: expected None or an integer from 32 to 255, "
                 f"got {self.maxnreg!r}"
@@ -85,6 +84,10 @@ class LaunchConfig:
         if self.maxnreg is not None:
             options["maxnreg"] = self.maxnreg
         return options
+
+
+def _integer(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 SAFE = LaunchConfig(forward_warps=4, channels=16)
@@ -221,7 +224,7 @@ def _out_of_resources(error: Exception) -> bool:
 
 def _autotuned(kernel: Any, backward: bool) -> Any:
     """``kernel`` under ``triton.autotune`` over warps and channels (forward) or pixels
-    (backward), keyed on the channel count and the tile size, with every output it
+    (backward), keyed on the channel count, the tile size and the pass, with every output it
     accumulates into (of :data:`ACCUMULATED`) reset to zero."""
     import triton
 
@@ -229,7 +232,8 @@ def _autotuned(kernel: Any, backward: bool) -> Any:
         name, sizes = ("BLOCK_P", (32, 64, 128)) if backward else ("BLOCK_D", (16, 32, 64))
         configs = [triton.Config({name: n}, num_warps=w) for w in (4, 8) for n in sizes]
         zero = [n for n in kernel.arg_names if n in ACCUMULATED]
-        _tuned[kernel] = triton.autotune(configs, key=["dim", "S"], reset_to_zero=zero)(kernel)
+        key = ["dim", "S", "SUMS"] if backward else ["dim", "S"]  # each pass its own choice
+        _tuned[kernel] = triton.autotune(configs, key=key, reset_to_zero=zero)(kernel)
     return _tuned[kernel]
 
 

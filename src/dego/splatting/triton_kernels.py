@@ -43,7 +43,7 @@ from dego.splatting.tiles import TileLists
 
 BLOCK_G = 16
 """Gaussians per forward batch (the inner dimension of the ``tl.dot`` products; at least
-16, and a divisor of every bucket size)."""
+16)."""
 SCAN_PIXELS = 64
 """Pixels per program of the scan over a tile's buckets (two loads and stores a bucket)."""
 SCAN_WARPS = 2
