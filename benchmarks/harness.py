@@ -173,11 +173,12 @@ def splat_versions(device: torch.device) -> str:
     else:
         from dego.splatting import triton_configs
 
-        settings = "autotuned" if triton_configs.autotuning() else "table"
-        if device.type == "cuda":
-            family = triton_configs.family(device)
-            config = triton_configs.TABLE.get(family, triton_configs.SAFE)
-            settings = f"{family}: {config}" if settings == "table" else settings
+        if triton_configs.autotuning():
+            settings = "autotuned"
+        elif device.type == "cuda":  # what the launches will use, by the same lookup
+            settings = f"{triton_configs.family(device)}: {triton_configs.config_for(device)}"
+        else:
+            settings = "table"
         parts.append(f"triton {triton.__version__} ({settings})")
     try:
         import gsplat
